@@ -1,0 +1,191 @@
+"""Affine factorization of a tracking matrix: ``W ~ M S`` (+ translations).
+
+Two forms, both from the paper (section 3.2 and 4.1):
+
+* **registered rank-3k** (eq. 8): every frame is registered to its centroid, then the
+  centred matrix is factorized at rank ``3k``. Valid only when every point is seen and
+  clean, because the centroid is computed from the data itself.
+* **augmented rank-(3k+1)** (eq. 12): no registration; the translations are carried by
+  an extra column of ``M`` and a row of ones in ``S``. Works with outlying and missing
+  data.
+
+Complete data is factorized by a truncated SVD, the least-squares optimum (eq. 13);
+data with missing entries by masked alternating least squares (Hartley &
+Schaffalitzky's power factorization), initialised from the SVD of the mean-filled
+matrix. All kernels are pure and jit-compiled; they vmap over trials.
+"""
+
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from .tracks import prepare_tracks, row_mask, to_frames
+
+
+class Factorization(eqx.Module):
+    """A low-rank fit ``W_hat = M S + translations``.
+
+    For the augmented form the translations are zero here: they live in ``M``'s last
+    column and ``S``'s (approximate) ones row until the metric upgrade separates them.
+    """
+
+    M: Float[Array, "2m r"]
+    """Motion matrix."""
+    S: Float[Array, "r n"]
+    """Structure matrix."""
+    translations: Float[Array, "m 2"]
+    """Per-frame image centroids removed before factorizing (registered form), else 0."""
+    W_hat: Float[Array, "2m n"]
+    """The fitted tracking matrix, ``M S`` plus the translations."""
+    cost: Float[Array, ""]
+    """Sum of squared residuals over the visible entries."""
+    steps: Int[Array, ""]
+    """Alternating least-squares sweeps taken (0 for the SVD)."""
+    converged: Bool[Array, ""]
+    """False if the iterative solver hit ``max_steps`` before its tolerance."""
+
+
+def svd_factors(W: Float[Array, "2m n"], rank: int) -> tuple[Float[Array, "2m r"], Float[Array, "r n"]]:
+    """Best rank-``rank`` factors of a complete matrix, balanced as ``U sqrt(s)``, ``sqrt(s) V^T``."""
+    U, s, Vt = jnp.linalg.svd(W, full_matrices=False)
+    root = jnp.sqrt(s[:rank])
+    return U[:, :rank] * root, root[:, None] * Vt[:rank]
+
+
+def _solve_batched(G: Float[Array, "b r r"], rhs: Float[Array, "b r"]) -> Float[Array, "b r"]:
+    # A relative ridge keeps an (almost) unconstrained factor finite instead of NaN; it
+    # is far below the noise of any real problem.
+    r = G.shape[-1]
+    ridge = 1e-12 * jnp.trace(G, axis1=-2, axis2=-1)[:, None, None] / r + jnp.finfo(G.dtype).tiny
+    return jnp.linalg.solve(G + ridge * jnp.eye(r, dtype=G.dtype), rhs[..., None])[..., 0]
+
+
+def als_step(
+    W: Float[Array, "2m n"], mask: Float[Array, "2m n"], M: Float[Array, "2m r"]
+) -> tuple[Float[Array, "2m r"], Float[Array, "r n"]]:
+    """One sweep of masked alternating least squares: S given M, then M given S.
+
+    Each column of ``S`` and each row of ``M`` is an independent ``r x r`` normal
+    equation over its visible entries, so the sweep is two batched solves.
+    """
+    G = jnp.einsum("ij,ia,ib->jab", mask, M, M)
+    S = _solve_batched(G, jnp.einsum("ij,ia,ij->ja", mask, M, W)).T
+    G = jnp.einsum("ij,aj,bj->iab", mask, S, S)
+    M = _solve_batched(G, jnp.einsum("ij,aj,ij->ia", mask, S, W))
+    # Keep M orthonormal so the gauge cannot drift towards an ill-conditioned pair.
+    Q, R = jnp.linalg.qr(M)
+    return Q, R @ S
+
+
+def masked_als(
+    W: Float[Array, "2m n"],
+    visible: Bool[Array, "m n"],
+    M0: Float[Array, "2m r"],
+    *,
+    max_steps: int = 500,
+    rtol: float = 1e-10,
+) -> tuple[Float[Array, "2m r"], Float[Array, "r n"], Int[Array, ""], Bool[Array, ""]]:
+    """Minimise ``sum_visible (W - M S)^2`` by alternating least squares from ``M0``.
+
+    Stops when a sweep lowers the cost by less than ``rtol`` of itself, or when the
+    cost is negligible against the data.
+    """
+    mask = row_mask(visible).astype(W.dtype)
+    scale = jnp.sum(mask * W**2)
+    floor = jnp.finfo(W.dtype).eps ** 2 * scale
+
+    def cost(M, S):
+        return jnp.sum(mask * (W - M @ S) ** 2)
+
+    def cond(state):
+        _, _, c, c_prev, step = state
+        return (step < max_steps) & (c > floor) & (c_prev - c > rtol * c)
+
+    def body(state):
+        M, _, c, _, step = state
+        M, S = als_step(W, mask, M)
+        return M, S, cost(M, S), c, step + 1
+
+    M, S = als_step(W, mask, M0)
+    inf = jnp.array(jnp.inf, W.dtype)
+    M, S, c, c_prev, steps = jax.lax.while_loop(cond, body, (M, S, cost(M, S), inf, jnp.array(1)))
+    converged = (c <= floor) | (c_prev - c <= rtol * c)
+    return M, S, steps, converged
+
+
+def mean_fill(W: Float[Array, "2m n"], visible: Bool[Array, "m n"]) -> Float[Array, "2m n"]:
+    """Replace missing entries by the mean of their row's visible entries."""
+    mask = row_mask(visible)
+    mean = jnp.sum(jnp.where(mask, W, 0.0), axis=1) / jnp.maximum(mask.sum(axis=1), 1)
+    return jnp.where(mask, W, mean[:, None])
+
+
+def centroids(W: Float[Array, "2m n"], visible: Bool[Array, "m n"]) -> Float[Array, "m 2"]:
+    """Per-frame image centroid of the visible points (eq. 4's registration)."""
+    vis = visible[:, None, :]
+    return jnp.sum(jnp.where(vis, to_frames(W), 0.0), axis=2) / jnp.maximum(vis.sum(axis=2), 1)
+
+
+@eqx.filter_jit
+def factorize_prepared(
+    W: Float[Array, "2m n"],
+    visible: Bool[Array, "m n"],
+    *,
+    rank: int,
+    register: bool,
+    complete: bool,
+    max_steps: int = 500,
+    rtol: float = 1e-10,
+) -> Factorization:
+    """:func:`factorize` on already validated, zero-filled tracks (jit-compiled, vmappable).
+
+    ``complete`` is static: ``True`` uses the SVD alone, ``False`` refines the SVD of the
+    mean-filled matrix by masked alternating least squares.
+    """
+    t = centroids(W, visible) if register else jnp.zeros((W.shape[0] // 2, 2), W.dtype)
+    Wc = W - t.reshape(-1)[:, None]
+    if complete:
+        M, S = svd_factors(Wc, rank)
+        steps, converged = jnp.array(0), jnp.array(True)
+    else:
+        M0, _ = svd_factors(mean_fill(Wc, visible), rank)
+        M, S, steps, converged = masked_als(Wc, visible, M0, max_steps=max_steps, rtol=rtol)
+    fit = M @ S
+    mask = row_mask(visible)
+    cost = jnp.sum(jnp.where(mask, Wc - fit, 0.0) ** 2)
+    return Factorization(M, S, t, fit + t.reshape(-1)[:, None], cost, steps, converged)
+
+
+def factorize(
+    W: ArrayLike,
+    visible: ArrayLike | None = None,
+    *,
+    rank: int,
+    form: Literal["augmented", "registered"] = "augmented",
+    max_steps: int = 500,
+    rtol: float = 1e-10,
+) -> Factorization:
+    """Low-rank affine factorization of a tracking matrix.
+
+    **Arguments:**
+
+    - `W`: tracks ``(2m, n)``, rows ``2i, 2i+1`` = u, v of frame ``i``; NaN = missing.
+    - `visible`: optional ``(m, n)`` boolean mask of observed entries.
+    - `rank`: rank of ``M S``: ``3k + 1`` for the augmented form of a ``k``-basis
+      nonrigid object (``4`` for a rigid one), ``3k`` for the registered form.
+    - `form`: ``"augmented"`` (eq. 12, no registration) or ``"registered"`` (eq. 8,
+      each frame centred on its visible centroid first).
+    - `max_steps`, `rtol`: the alternating least-squares budget when data is missing.
+
+    **Returns:** a :class:`Factorization`.
+    """
+    if form not in ("augmented", "registered"):
+        raise ValueError(f"form must be 'augmented' or 'registered'; got {form!r}")
+    W0, vis = prepare_tracks(W, visible, rank=rank)
+    complete = not isinstance(vis, jax.core.Tracer) and bool(vis.all())
+    return factorize_prepared(
+        W0, vis, rank=rank, register=form == "registered", complete=complete, max_steps=max_steps, rtol=rtol
+    )

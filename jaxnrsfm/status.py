@@ -1,0 +1,13 @@
+"""Per-trial outcome of a reconstruction: an enumeration that lives inside jit and vmap,
+so a failing trial in a batch is reported instead of aborting or poisoning the others."""
+
+import equinox as eqx
+
+
+class Status(eqx.Enumeration):
+    """Outcome of :func:`jaxnrsfm.reconstruct`. Compare with ``==``, e.g.
+    ``result.status == Status.success`` (an array under vmap)."""
+
+    success = "the reconstruction succeeded"
+    not_converged = "the iterative solver stopped at its step limit before reaching its tolerance"
+    nonfinite = "the solution contains non-finite values (degenerate data)"
