@@ -4,30 +4,58 @@ The flow is tracks -> factorization -> metric upgrade -> Euclidean reconstructio
 metrics; see ``README.md``.
 """
 
-from .factorize import Factorization as Factorization, factorize as factorize
+from .factorize import Factorization as Factorization
+from .factorize import factorize as factorize
 from .metrics import (
     align_shapes as align_shapes,
+)
+from .metrics import (
     e3d as e3d,
+)
+from .metrics import (
     entry_errors as entry_errors,
+)
+from .metrics import (
     mean_reprojection_error as mean_reprojection_error,
+)
+from .metrics import (
     outlier_precision_recall as outlier_precision_recall,
+)
+from .metrics import (
     rms_error as rms_error,
+)
+from .metrics import (
     statistical_floor as statistical_floor,
 )
-from .reconstruct import (
+from .pipeline import (
     Reconstruction as Reconstruction,
+)
+from .pipeline import (
     reconstruct as reconstruct,
+)
+from .pipeline import (
     reconstruct_prepared as reconstruct_prepared,
 )
 from .status import Status as Status
 from .synthetic import (
     SyntheticSequence as SyntheticSequence,
+)
+from .synthetic import (
     bregler_sequence as bregler_sequence,
+)
+from .synthetic import (
     deformable_cube as deformable_cube,
+)
+from .synthetic import (
     drop_entries as drop_entries,
+)
+from .synthetic import (
     inject_outliers as inject_outliers,
 )
-from .tracks import from_frames as from_frames, prepare_tracks as prepare_tracks, to_frames as to_frames
-from .upgrade import Euclidean as Euclidean, metric_upgrade as metric_upgrade
+from .tracks import from_frames as from_frames
+from .tracks import prepare_tracks as prepare_tracks
+from .tracks import to_frames as to_frames
+from .upgrade import Euclidean as Euclidean
+from .upgrade import metric_upgrade as metric_upgrade
 
 __version__ = "0.1.0"

@@ -111,7 +111,16 @@ def _observe(key, shapes, rotations, translations, weights, bases, noise, outlie
     W, outliers = inject_outliers(k_out, W, visible, outlier_ratio)
     W = jnp.where(row_mask(visible), W, jnp.nan)
     return SyntheticSequence(
-        W, visible, W_clean, shapes, rotations, translations, weights, bases, outliers, jnp.asarray(noise, W.dtype)
+        W,
+        visible,
+        W_clean,
+        shapes,
+        rotations,
+        translations,
+        weights,
+        bases,
+        outliers,
+        jnp.asarray(noise, W.dtype),
     )
 
 
@@ -145,7 +154,12 @@ def _cube_geometry() -> tuple[np.ndarray, np.ndarray]:
     rigid = np.concatenate(rigid, axis=1)
     radii = np.concatenate([[0.0], np.full(8, h / 4), np.full(12, h / 2), np.full(12, 3 * h / 4)])
     angles = np.concatenate(
-        [[0.0], np.arange(8) * 2 * np.pi / 8, np.arange(12) * 2 * np.pi / 12, (np.arange(12) + 0.5) * 2 * np.pi / 12]
+        [
+            [0.0],
+            np.arange(8) * 2 * np.pi / 8,
+            np.arange(12) * 2 * np.pi / 12,
+            (np.arange(12) + 0.5) * 2 * np.pi / 12,
+        ]
     )
     discs, modes = [], np.zeros((3, 3, 153 + 99))
     for face in range(3):

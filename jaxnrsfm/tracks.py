@@ -43,7 +43,7 @@ def prepare_tracks(
     visible: ArrayLike | None = None,
     *,
     rank: int | None = None,
-    rank_name: str = "rank",
+    rank_name: str | None = None,
 ) -> tuple[Float[Array, "2m n"], Bool[Array, "m n"]]:
     """Validate a tracking matrix and return it with missing entries zero-filled.
 
@@ -71,9 +71,7 @@ def prepare_tracks(
         raise ValueError(f"tracks W must be a 2-D array of shape (2m, n); got shape {W.shape}")
     rows, n = W.shape
     if rows % 2:
-        raise ValueError(
-            f"tracks W must have an even number of rows (u and v of each frame); got {rows}"
-        )
+        raise ValueError(f"tracks W must have an even number of rows (u and v of each frame); got {rows}")
     m = rows // 2
     if m == 0 or n == 0:
         raise ValueError(f"tracks W is empty: shape {W.shape}")
@@ -82,10 +80,10 @@ def prepare_tracks(
             visible = np.asarray(visible)
         if visible.shape != (m, n):
             raise ValueError(
-                f"visible must have shape (m, n) = ({m}, {n}) for W of shape {W.shape}; "
-                f"got {visible.shape}"
+                f"visible must have shape (m, n) = ({m}, {n}) for W of shape {W.shape}; got {visible.shape}"
             )
     if rank is not None:
+        rank_name = rank_name or f"rank {rank}"
         if rank < 1:
             raise ValueError(f"rank must be at least 1; got {rank}")
         if rank > min(rows, n):

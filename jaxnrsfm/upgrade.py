@@ -20,12 +20,14 @@ block per frame, ``R_i`` the first two rows of a rotation). The upgrade proceeds
    ``k``-dimensional null space holds exactly the true triples (up to a ``k x k`` mixing
    that leaves every shape ``sum_l w_il B_l`` unchanged). This replaces Xiao et al.'s
    basis constraints, which need ``k`` frames with independent shapes to be chosen.
-   Rotations and triples are then alternated a few times (Procrustes on all triples).
+   The rotations are then re-read from the dominant combination of the triples (one
+   that no frame's weights nearly cancel) and the triples solved once more.
 4. **Shapes.** ``B = H^-1 S``, ``S_i = sum_l w_il B_l``. The Bregler model cannot tell
    ``(w_i, R_i)`` from ``(-w_i, diag(-1,-1,1) R_i)`` (a per-frame depth flip); every
-   shape is made to correlate positively with the principal shape. Finally the bases
-   are put in a canonical gauge: principal shapes in order of energy, with unit-RMS
-   weights.
+   shape is made to correlate positively with the principal shape. Finally the
+   reconstruction is put in a canonical gauge: the world frame is the first camera's
+   (``R_0 = I``), the mirror image with positive depth skewness in frame 0, and the
+   bases are the principal shapes in order of energy, with unit-RMS weights.
 
 For ``k = 1`` this is the Tomasi--Kanade rigid upgrade (the weights are the per-frame
 camera scales). All functions are pure and jit-compiled.
@@ -95,11 +97,13 @@ def _rotation_residuals(g: Float[Array, "3k 3"], Mn: Float[Array, "2m 3k"]) -> F
     return jnp.concatenate([aa - bb, 2 * ab, jnp.sqrt(Mn.shape[0] / 2.0) * scale[None]])
 
 
-def rotation_triple(M: Float[Array, "2m 3k"], *, starts: int = 8, max_steps: int = 40) -> Float[Array, "3k 3"]:
+def rotation_triple(
+    M: Float[Array, "2m 3k"], g0: Float[Array, "starts 3k 3"], *, max_steps: int = 40
+) -> Float[Array, "3k 3"]:
     """A column triple ``g`` mapping every frame of ``M`` to a scaled rotation.
 
-    Gauss--Newton (optimistix) on the rotation constraints from ``starts``
-    deterministic random starts, vmapped; the lowest cost wins.
+    Gauss--Newton (optimistix) on the rotation constraints from each start in ``g0``,
+    vmapped; the lowest cost wins.
     """
     Mn = M / jnp.sqrt(jnp.mean(M**2))
     eps = jnp.finfo(M.dtype).eps
@@ -109,10 +113,7 @@ def rotation_triple(M: Float[Array, "2m 3k"], *, starts: int = 8, max_steps: int
     # then wander along the manifold at round-off level and never meet the termination
     # test, which is harmless: every point of it is a solution. So the step budget,
     # not the tolerance, ends those solves, and throw=False keeps that from erroring.
-    solver = optx.GaussNewton(
-        rtol=eps**0.6, atol=eps**0.75, linear_solver=lx.AutoLinearSolver(well_posed=False)
-    )
-    g0 = jax.random.normal(jax.random.key(0), (starts, M.shape[1], 3), M.dtype)
+    solver = optx.GaussNewton(rtol=eps**0.6, atol=eps**0.75, linear_solver=lx.AutoLinearSolver(well_posed=False))
 
     def solve(g):
         sol = optx.least_squares(_rotation_residuals, solver, g, Mn, max_steps=max_steps, throw=False)
@@ -120,6 +121,14 @@ def rotation_triple(M: Float[Array, "2m 3k"], *, starts: int = 8, max_steps: int
 
     gs, costs = jax.vmap(solve)(g0)
     return gs[jnp.argmin(jnp.where(jnp.isfinite(costs), costs, jnp.inf))]
+
+
+def _rotations_and_trust(Mi: Float[Array, "m 2 3k"], g: Float[Array, "3k 3"]):
+    # A frame where the triple's combination of weights, c . w_i, is near zero gets a
+    # poorly determined rotation: trust each frame by its squared scale.
+    A = Mi @ g
+    scale = jnp.sum(A**2, axis=(1, 2))
+    return nearest_rotations(A), scale / jnp.max(scale)
 
 
 def nearest_rotations(A: Float[Array, "m 2 3"]) -> Float[Array, "m 3 3"]:
@@ -157,7 +166,6 @@ def metric_upgrade(
     k: int,
     *,
     starts: int = 8,
-    refinements: int = 5,
 ) -> Euclidean:
     """Upgrade a centred affine factorization ``W = M S + t 1^T`` to Euclidean form.
 
@@ -167,26 +175,21 @@ def metric_upgrade(
     - `translations`: ``(m, 2)``; moved to the shapes' centroid if ``S`` is not centred.
     - `k`: number of shape bases.
     - `starts`: random starts for the rotation triple (step 2).
-    - `refinements`: rotation / triple alternations (step 3).
     """
     S, translations = center_structure(M, S, translations)
     Mi = to_frames(M)
-    A = Mi @ rotation_triple(M, starts=starts)
-    R = nearest_rotations(A)
-    # A frame where the triple's combination of weights, c . w_i, is near zero gets a
-    # poorly determined rotation: trust each frame by its squared scale at first. Once
-    # every triple is known, sum_l w_il M_i h_l = |w_i|^2 R_i fixes every frame's rotation.
-    scale = jnp.sum(A**2, axis=(1, 2))
-    trust = scale / jnp.max(scale)
-
-    def refine(carry, _):
-        R, trust = carry
-        H, w = triples_given_rotations(M, R, k, trust)
-        MH = (Mi @ H).reshape(-1, 2, k, 3)
-        return (nearest_rotations(jnp.einsum("il,ialc->iac", w, MH)), jnp.ones_like(trust)), None
-
-    (R, _), _ = jax.lax.scan(refine, (R, trust), None, length=refinements)
-    H, w = triples_given_rotations(M, R, k)
+    g0 = jax.random.normal(jax.random.key(0), (starts, M.shape[1], 3), M.dtype)
+    R, trust = _rotations_and_trust(Mi, rotation_triple(M, g0))
+    H, w = triples_given_rotations(M, R, k, trust)
+    # The first triple is whichever combination of the true ones a start fell into, and
+    # may nearly vanish in some frames. Now that all k triples are known, take the
+    # dominant combination (largest sum_i (w_i . c)^2): every frame's rotation then comes
+    # from a well-scaled triple. (Polishing it again on the rotation constraints gains
+    # nothing with noise and loses digits without: those constraints are ill-conditioned
+    # along the directions that Xiao et al.'s basis constraints were invented to fix.)
+    c = jnp.linalg.svd(w, full_matrices=False)[2][0]
+    R, trust = _rotations_and_trust(Mi, jnp.einsum("blc,l->bc", H.reshape(-1, k, 3), c))
+    H, w = triples_given_rotations(M, R, k, trust)
     B = jnp.linalg.solve(H, S).reshape(k, 3, -1)
     shapes = jnp.einsum("il,lan->ian", w, B)
 
@@ -198,8 +201,21 @@ def metric_upgrade(
     sign = jnp.where(flat @ principal < 0, -1.0, 1.0).astype(M.dtype)
     shapes = sign[:, None, None] * shapes
     R = R * jnp.stack([sign, sign, jnp.ones_like(sign)], axis=1)[:, :, None]
+    R, shapes = _canonical_world(R, shapes)
     weights, bases = _canonical_bases(shapes.reshape(shapes.shape[0], -1), k)
     return Euclidean(R, weights, bases.reshape(k, 3, -1), shapes, translations, metric_residual)
+
+
+def _canonical_world(R: Float[Array, "m 3 3"], shapes: Float[Array, "m 3 n"]):
+    # The world frame is arbitrary: put it in the first camera's frame (R_0 = I). Of a
+    # reconstruction and its mirror image (z -> -z with R -> D R D, D = diag(1, 1, -1)),
+    # which project identically, keep the one whose first shape has positive depth
+    # skewness. The result no longer depends on which random start won.
+    shapes = jnp.einsum("ab,ibn->ian", R[0], shapes)
+    R = R @ R[0].T
+    mirror = jnp.sum(shapes[0, 2] ** 3) < 0
+    D = jnp.where(mirror, jnp.array([1.0, 1.0, -1.0], R.dtype), 1.0)
+    return D[:, None] * R * D[None, :], D[:, None] * shapes
 
 
 def _canonical_bases(flat: Float[Array, "m 3n"], k: int) -> tuple[Float[Array, "m k"], Float[Array, "k 3n"]]:
