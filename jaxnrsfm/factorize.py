@@ -40,8 +40,10 @@ class Factorization(eqx.Module):
     """Per-frame image centroids removed before factorizing (registered form), else 0."""
     W_hat: Float[Array, "2m n"]
     """The fitted tracking matrix, ``M S`` plus the translations."""
+    inliers: Bool[Array, "m n"]
+    """Entries the fit used: the visible ones, less any a robust method rejected."""
     cost: Float[Array, ""]
-    """Sum of squared residuals over the visible entries."""
+    """Sum of squared residuals over the inliers."""
     steps: Int[Array, ""]
     """Alternating least-squares sweeps taken (0 for the SVD)."""
     converged: Bool[Array, ""]
@@ -82,18 +84,19 @@ def als_step(
 
 def masked_als(
     W: Float[Array, "2m n"],
-    visible: Bool[Array, "m n"],
+    weights: Float[Array, "m n"],
     M0: Float[Array, "2m r"],
     *,
     max_steps: int = 500,
     rtol: float = 1e-10,
 ) -> tuple[Float[Array, "2m r"], Float[Array, "r n"], Int[Array, ""], Bool[Array, ""]]:
-    """Minimise ``sum_visible (W - M S)^2`` by alternating least squares from ``M0``.
+    """Minimise ``sum_ij weights_ij |w_ij - M_i s_j|^2`` by alternating least squares from ``M0``.
 
-    Stops when a sweep lowers the cost by less than ``rtol`` of itself, or when the
-    cost is negligible against the data.
+    ``weights`` is a visibility mask (bool) or non-negative per-entry weights; a zero
+    weight is a missing entry. Stops when a sweep lowers the cost by less than ``rtol``
+    of itself, or when the cost is negligible against the data.
     """
-    mask = row_mask(visible).astype(W.dtype)
+    mask = row_mask(weights).astype(W.dtype)
     scale = jnp.sum(mask * W**2)
     floor = jnp.finfo(W.dtype).eps ** 2 * scale
 
@@ -129,6 +132,39 @@ def centroids(W: Float[Array, "2m n"], visible: Bool[Array, "m n"]) -> Float[Arr
     return jnp.sum(jnp.where(vis, to_frames(W), 0.0), axis=2) / jnp.maximum(vis.sum(axis=2), 1)
 
 
+def initial_fit(
+    W: Float[Array, "2m n"],
+    weights: Float[Array, "m n"],
+    rank: int,
+    *,
+    complete: bool,
+    max_steps: int = 500,
+    rtol: float = 1e-10,
+) -> tuple[Float[Array, "2m r"], Float[Array, "r n"], Int[Array, ""], Bool[Array, ""]]:
+    """Least-squares rank-``rank`` fit: the truncated SVD when ``complete`` (static) and
+    the weights are uniform, else masked ALS started from the SVD of the mean-filled matrix."""
+    if complete:
+        M, S = svd_factors(W, rank)
+        return M, S, jnp.array(0), jnp.array(True)
+    M0, _ = svd_factors(mean_fill(W, weights > 0), rank)
+    return masked_als(W, weights, M0, max_steps=max_steps, rtol=rtol)
+
+
+def finish(
+    W: Float[Array, "2m n"],
+    inliers: Bool[Array, "m n"],
+    M: Float[Array, "2m r"],
+    S: Float[Array, "r n"],
+    t: Float[Array, "m 2"],
+    steps: Int[Array, ""],
+    converged: Bool[Array, ""],
+) -> Factorization:
+    """Assemble a :class:`Factorization`, with its cost over the inliers."""
+    fit = M @ S + t.reshape(-1)[:, None]
+    cost = jnp.sum(jnp.where(row_mask(inliers), W - fit, 0.0) ** 2)
+    return Factorization(M, S, t, fit, inliers, cost, steps, converged)
+
+
 @eqx.filter_jit
 def factorize_prepared(
     W: Float[Array, "2m n"],
@@ -146,17 +182,9 @@ def factorize_prepared(
     mean-filled matrix by masked alternating least squares.
     """
     t = centroids(W, visible) if register else jnp.zeros((W.shape[0] // 2, 2), W.dtype)
-    Wc = W - t.reshape(-1)[:, None]
-    if complete:
-        M, S = svd_factors(Wc, rank)
-        steps, converged = jnp.array(0), jnp.array(True)
-    else:
-        M0, _ = svd_factors(mean_fill(Wc, visible), rank)
-        M, S, steps, converged = masked_als(Wc, visible, M0, max_steps=max_steps, rtol=rtol)
-    fit = M @ S
-    mask = row_mask(visible)
-    cost = jnp.sum(jnp.where(mask, Wc - fit, 0.0) ** 2)
-    return Factorization(M, S, t, fit + t.reshape(-1)[:, None], cost, steps, converged)
+    Wc = jnp.where(row_mask(visible), W - t.reshape(-1)[:, None], 0.0)
+    M, S, steps, converged = initial_fit(Wc, visible, rank, complete=complete, max_steps=max_steps, rtol=rtol)
+    return finish(W, visible, M, S, t, steps, converged)
 
 
 def factorize(

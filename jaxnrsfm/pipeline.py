@@ -12,12 +12,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .factorize import factorize_prepared
+from . import robust
+from .factorize import Factorization, factorize_prepared
 from .status import Status
 from .tracks import from_frames, prepare_tracks
 from .upgrade import metric_upgrade, split_translation
 
-METHODS = ("direct",)
+METHODS = ("direct", "wang", "huynh", "oracle")
 """Reconstruction strategies available to :func:`reconstruct`."""
 FORMS = ("augmented", "registered")
 """Factorization forms: rank ``3k + 1`` without registration, or rank ``3k`` registered."""
@@ -61,41 +62,63 @@ class Reconstruction(eqx.Module):
         return from_frames(proj + self.translations[:, :, None])
 
 
+def _factorize(W, visible, outliers, *, k, method, form, complete, options) -> Factorization:
+    augmented = form == "augmented"
+    rank = 3 * k + augmented
+    budget = dict(max_steps=options["max_steps"], rtol=options["rtol"])
+    if method == "direct":
+        return factorize_prepared(W, visible, rank=rank, register=not augmented, complete=complete, **budget)
+    if method == "wang":
+        keys = ("threshold", "passes", "weighted")
+        return robust.wang(W, visible, rank=rank, complete=complete, **budget, **{k: options[k] for k in keys})
+    if method == "huynh":
+        return robust.huynh(W, visible, rank=rank, complete=complete, iterations=options["iterations"], **budget)
+    return robust.oracle(W, visible, outliers, rank=rank, **budget)
+
+
+def _status(fac: Factorization, shapes, rank: int) -> Status:
+    # Too few inliers to determine a frame's motion or a point's structure, or more
+    # rejected than kept (the median scale breaks down): the fit cannot be trusted.
+    inliers, observed = fac.inliers, jnp.maximum(fac.inliers.sum(), 1)
+    starved = jnp.any(inliers.sum(1) < rank) | jnp.any(2 * inliers.sum(0) < rank)
+    starved |= inliers.sum() < 0.5 * observed
+    finite = jnp.all(jnp.isfinite(fac.W_hat)) & jnp.all(jnp.isfinite(shapes))
+    status = Status.where(fac.converged, Status.success, Status.not_converged)
+    status = Status.where(starved, Status.too_many_outliers, status)
+    return Status.where(finite, status, Status.nonfinite)
+
+
 @eqx.filter_jit
 def reconstruct_prepared(
     W: Float[Array, "2m n"],
     visible: Bool[Array, "m n"],
+    outliers: Bool[Array, "m n"] | None = None,
     *,
     k: int,
     method: str = "direct",
     form: str = "augmented",
     complete: bool = False,
+    threshold: float = 4.0,
+    passes: int = 4,
+    weighted: bool = True,
+    iterations: int = 10,
     max_steps: int = 500,
     rtol: float = 1e-10,
 ) -> Reconstruction:
     """:func:`reconstruct` on tracks already checked by :func:`prepare_tracks` (zero-filled,
     with their effective mask): the pure, jit-compiled pipeline that a batch vmaps."""
-    augmented = form == "augmented"
-    fac = factorize_prepared(
-        W,
-        visible,
-        rank=3 * k + augmented,
-        register=not augmented,
-        complete=complete,
-        max_steps=max_steps,
-        rtol=rtol,
+    options = dict(
+        threshold=threshold, passes=passes, weighted=weighted, iterations=iterations, max_steps=max_steps, rtol=rtol
     )
-    if augmented:
+    fac = _factorize(W, visible, outliers, k=k, method=method, form=form, complete=complete, options=options)
+    if form == "augmented":
         M, S, t, _ = split_translation(fac.M, fac.S)
     else:
         M, S, t = fac.M, fac.S, fac.translations
     eu = metric_upgrade(M, S, t, k)
-    finite = jnp.all(jnp.isfinite(fac.W_hat)) & jnp.all(jnp.isfinite(eu.shapes))
-    status = Status.where(fac.converged, Status.success, Status.not_converged)
-    status = Status.where(finite, status, Status.nonfinite)
     return Reconstruction(
         fac.W_hat,
-        visible,
+        fac.inliers,
         eu.shapes,
         eu.rotations,
         eu.weights,
@@ -106,7 +129,7 @@ def reconstruct_prepared(
         fac.cost,
         eu.metric_residual,
         fac.steps,
-        status,
+        _status(fac, eu.shapes, M.shape[1] + (form == "augmented")),
     )
 
 
@@ -115,8 +138,13 @@ def reconstruct(
     visible: ArrayLike | None = None,
     *,
     k: int,
-    method: Literal["direct"] = "direct",
+    method: Literal["direct", "wang", "huynh", "oracle"] = "direct",
     form: Literal["augmented", "registered"] = "augmented",
+    outliers: ArrayLike | None = None,
+    threshold: float = 4.0,
+    passes: int = 4,
+    weighted: bool = True,
+    iterations: int = 10,
     max_steps: int = 500,
     rtol: float = 1e-10,
 ) -> Reconstruction:
@@ -128,26 +156,55 @@ def reconstruct(
     - `visible`: optional ``(m, n)`` mask of observed entries.
     - `k`: number of shape bases (1 = rigid).
     - `method`: ``"direct"`` fits every observed entry by least squares (no outlier
-      handling).
+      handling); ``"wang"`` is the paper's robust algorithm (section 4.2,
+      :func:`jaxnrsfm.robust.wang`); ``"huynh"`` is Huynh et al.'s pseudo-observation
+      correction; ``"oracle"`` is least squares told the true ``outliers``.
     - `form`: ``"augmented"`` (the paper's rank-(3k+1) factorization, eq. 12, no
       registration; the default) or ``"registered"`` (rank 3k after centring each frame
-      on its visible centroid, eq. 8).
+      on its visible centroid, eq. 8; ``method="direct"`` only).
+    - `outliers`: ``(m, n)`` true outlier mask, for ``method="oracle"`` only.
+    - `threshold`, `passes`, `weighted`: the robust algorithm's outlier threshold (a
+      multiple of the robust residual scale), rejection passes and step-5 weighting.
+    - `iterations`: Huynh et al.'s correction iterations.
     - `max_steps`, `rtol`: budget of the missing-data solver.
 
-    **Returns:** a :class:`Reconstruction`.
+    **Returns:** a :class:`Reconstruction`; its ``status`` reports, per trial, a solver
+    that did not converge or more outliers than the data can lose.
 
     **Raises:** ``ValueError`` (before any compilation) for malformed tracks, an unknown
-    method or form, or a ``k`` too large for the data.
+    method or form, a ``k`` too large for the data, or bad method options.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     if form not in FORMS:
         raise ValueError(f"unknown form {form!r}; choose one of {', '.join(FORMS)}")
+    if form == "registered" and method != "direct":
+        raise ValueError(f"form='registered' supports only method='direct'; {method!r} needs the augmented form")
     if not isinstance(k, int) or isinstance(k, bool) or k < 1:
         raise ValueError(f"k (the number of shape bases) must be a positive integer; got {k!r}")
+    if (method == "oracle") != (outliers is not None):
+        raise ValueError("method='oracle' needs the true `outliers` mask, and only it takes one")
+    if not threshold > 0 or passes < 1 or iterations < 1:
+        raise ValueError(f"threshold must be > 0 and passes, iterations >= 1; got {threshold}, {passes}, {iterations}")
     rank = 3 * k + (form == "augmented")
     W0, vis = prepare_tracks(W, visible, rank=rank, rank_name=f"k={k} ({form} rank {rank})")
+    if outliers is not None:
+        outliers = jnp.asarray(outliers, dtype=bool)
+        if outliers.shape != vis.shape:
+            raise ValueError(f"outliers must have shape (m, n) = {vis.shape}; got {outliers.shape}")
     complete = not isinstance(vis, jax.core.Tracer) and bool(vis.all())
     return reconstruct_prepared(
-        W0, vis, k=k, method=method, form=form, complete=complete, max_steps=max_steps, rtol=rtol
+        W0,
+        vis,
+        outliers,
+        k=k,
+        method=method,
+        form=form,
+        complete=complete,
+        threshold=threshold,
+        passes=passes,
+        weighted=weighted,
+        iterations=iterations,
+        max_steps=max_steps,
+        rtol=rtol,
     )

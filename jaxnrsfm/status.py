@@ -10,4 +10,8 @@ class Status(eqx.Enumeration):
 
     success = "the reconstruction succeeded"
     not_converged = "the iterative solver stopped at its step limit before reaching its tolerance"
+    too_many_outliers = (
+        "too many entries were rejected as outliers: a frame or point kept fewer inliers than the rank needs, "
+        "or more than half of the observations were rejected"
+    )
     nonfinite = "the solution contains non-finite values (degenerate data)"
