@@ -147,7 +147,7 @@ def l1_regression(
     - `A`: design matrix ``(N, r)``; may be rank deficient.
     - `b`: targets ``(N,)``.
     - `mask`: boolean or nonnegative weights ``(N,)``; rows with weight 0 are ignored
-      (their values in ``A`` and ``b`` may be anything finite).
+      (their values in ``A`` and ``b`` are never used, NaN included).
     - `max_steps`: interior-point iteration limit.
     - `tol`: relative duality gap at which to stop; default ``eps ** 0.75`` of the dtype
       (about ``2e-12`` in float64, ``6e-6`` in float32).

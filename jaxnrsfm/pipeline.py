@@ -18,7 +18,7 @@ from .status import Status
 from .tracks import from_frames, prepare_tracks
 from .upgrade import metric_upgrade, split_translation
 
-METHODS = ("direct", "wang", "huynh", "oracle")
+METHODS = ("direct", "wang", "huynh", "ke_kanade", "oracle")
 """Reconstruction strategies available to :func:`reconstruct`."""
 FORMS = ("augmented", "registered")
 """Factorization forms: rank ``3k + 1`` without registration, or rank ``3k`` registered."""
@@ -73,6 +73,8 @@ def _factorize(W, visible, outliers, *, k, method, form, complete, options) -> F
         return robust.wang(W, visible, rank=rank, complete=complete, **budget, **{k: options[k] for k in keys})
     if method == "huynh":
         return robust.huynh(W, visible, rank=rank, complete=complete, iterations=options["iterations"], **budget)
+    if method == "ke_kanade":
+        return robust.ke_kanade(W, visible, rank=rank, complete=complete, threshold=options["threshold"])
     return robust.oracle(W, visible, outliers, rank=rank, **budget)
 
 
@@ -138,7 +140,7 @@ def reconstruct(
     visible: ArrayLike | None = None,
     *,
     k: int,
-    method: Literal["direct", "wang", "huynh", "oracle"] = "direct",
+    method: Literal["direct", "wang", "huynh", "ke_kanade", "oracle"] = "direct",
     form: Literal["augmented", "registered"] = "augmented",
     outliers: ArrayLike | None = None,
     threshold: float = 4.0,
@@ -158,7 +160,8 @@ def reconstruct(
     - `method`: ``"direct"`` fits every observed entry by least squares (no outlier
       handling); ``"wang"`` is the paper's robust algorithm (section 4.2,
       :func:`jaxnrsfm.robust.wang`); ``"huynh"`` is Huynh et al.'s pseudo-observation
-      correction; ``"oracle"`` is least squares told the true ``outliers``.
+      correction; ``"ke_kanade"`` is Ke & Kanade's L1 factorization by alternating
+      linear programs; ``"oracle"`` is least squares told the true ``outliers``.
     - `form`: ``"augmented"`` (the paper's rank-(3k+1) factorization, eq. 12, no
       registration; the default) or ``"registered"`` (rank 3k after centring each frame
       on its visible centroid, eq. 8; ``method="direct"`` only).

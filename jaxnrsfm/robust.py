@@ -28,6 +28,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from .factorize import Factorization, finish, initial_fit, masked_als, svd_factors
+from .l1 import ke_kanade as ke_kanade_l1
 from .metrics import entry_errors
 from .tracks import row_mask
 
@@ -47,6 +48,21 @@ The first fit is pulled by every outlier: inliers near them get large residuals 
 and rejecting them as missing data leaves entries whose prediction nothing constrains.
 Starting loose removes only the grossest outliers, and each pass's cleaner fit earns a
 tighter threshold."""
+
+
+ANCHOR = 1e-4
+"""Weight kept by a rejected entry during the rejection passes.
+
+Dropped outright, a rejected entry becomes missing data, and nothing constrains the
+fit's prediction there: with a few entries of a point or frame gone, least squares
+finds directions that fit the rest and send those predictions anywhere (seen on the
+cube: errors of 1e2 to 1e5 units on wrongly rejected inliers), so they stay rejected.
+A weight of 1e-4 anchors them -- an outlier 100 units away pulls like an inlier 1 unit
+away -- and lets a wrongly rejected entry come back in the next pass."""
+
+
+def _anchored(inliers, visible):
+    return jnp.where(inliers, 1.0, jnp.where(visible, ANCHOR, 0.0))
 
 
 def _zero_translations(W):
@@ -84,10 +100,7 @@ def wang(
         M, S, _, _, _ = carry
         errors = entry_errors(W, M @ S)
         inliers = visible & (errors <= factor * robust_scale(errors, visible))
-        # Not warm-started: a fit pulled by outliers can spend a singular vector on a
-        # cluster of them, a direction that vanishes once they are dropped, and ALS
-        # from there lets some columns of S run away. The mean-filled SVD start is safe.
-        M, S, steps, converged = initial_fit(W, inliers, rank, complete=False, max_steps=max_steps, rtol=rtol)
+        M, S, steps, converged = masked_als(W, _anchored(inliers, visible), M, max_steps=max_steps, rtol=rtol)
         return (M, S, inliers, steps, converged), None
 
     init = (M, S, visible, jnp.array(0), jnp.array(True))
@@ -146,6 +159,27 @@ def huynh(
     (M, S, _, steps, converged), _ = jax.lax.scan(correct, init, factors)
     errors = entry_errors(W, M @ S)
     inliers = visible & (errors <= end * robust_scale(errors, visible))
+    return finish(W, inliers, M, S, _zero_translations(W), steps, converged)
+
+
+def ke_kanade(
+    W: Float[Array, "2m n"],
+    visible: Bool[Array, "m n"],
+    *,
+    rank: int,
+    complete: bool,
+    threshold: float = 4.0,
+    max_steps: int = 100,
+    rtol: float = 1e-6,
+) -> Factorization:
+    """Ke & Kanade (2005): L1-norm factorization by alternating linear programs
+    (:func:`jaxnrsfm.l1.ke_kanade`), started from the least-squares fit. The entries it
+    reports as outliers are those whose final residual exceeds ``threshold *
+    sigma_hat``, the same rule as :func:`wang`'s, so that detection can be compared."""
+    M, _, _, _ = initial_fit(W, visible, rank, complete=complete)
+    M, S, steps, converged = ke_kanade_l1(W, visible, M, max_steps=max_steps, rtol=rtol)
+    errors = entry_errors(W, M @ S)
+    inliers = visible & (errors <= threshold * robust_scale(errors, visible))
     return finish(W, inliers, M, S, _zero_translations(W), steps, converged)
 
 
