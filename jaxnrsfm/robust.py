@@ -53,12 +53,12 @@ tighter threshold."""
 ANCHOR = 1e-4
 """Weight kept by a rejected entry during the rejection passes.
 
-Dropped outright, a rejected entry becomes missing data, and nothing constrains the
-fit's prediction there: with a few entries of a point or frame gone, least squares
-finds directions that fit the rest and send those predictions anywhere (seen on the
-cube: errors of 1e2 to 1e5 units on wrongly rejected inliers), so they stay rejected.
-A weight of 1e-4 anchors them -- an outlier 100 units away pulls like an inlier 1 unit
-away -- and lets a wrongly rejected entry come back in the next pass."""
+Dropped outright, a rejected entry becomes missing data and nothing constrains the
+fit's prediction there: on the cube, warm-started ALS then sent some predictions 1e2 to
+1e5 units away, so those entries stayed rejected. A weight of 1e-4 anchors them (an
+outlier 100 units away pulls like an inlier 1 unit away). It removes the blow-ups; it
+does not stop a few outliers being absorbed by the model's spare dimensions, which is
+why the method does not yet match the oracle on every trial (README, known limitations)."""
 
 
 def _anchored(inliers, visible):
