@@ -28,6 +28,9 @@ from .metrics import (
     statistical_floor as statistical_floor,
 )
 from .pipeline import (
+    Options as Options,
+)
+from .pipeline import (
     Reconstruction as Reconstruction,
 )
 from .pipeline import (

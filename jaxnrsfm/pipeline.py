@@ -24,6 +24,23 @@ FORMS = ("augmented", "registered")
 """Factorization forms: rank ``3k + 1`` without registration, or rank ``3k`` registered."""
 
 
+class Options(eqx.Module):
+    """The methods' tuning knobs (Python scalars: static under jit)."""
+
+    threshold: float = 4.0
+    """Outlier threshold, a multiple of the robust residual scale (``wang``, ``ke_kanade``)."""
+    passes: int = 4
+    """Rejection passes of the robust algorithm (``wang``)."""
+    weighted: bool = True
+    """Step 5's weighted factorization of the inliers (``wang``)."""
+    iterations: int = 10
+    """Pseudo-observation iterations (``huynh``)."""
+    max_steps: int = 500
+    """Step budget of the missing-data solver."""
+    rtol: float = 1e-10
+    """Relative cost decrease below which the missing-data solver stops."""
+
+
 class Reconstruction(eqx.Module):
     """The result of :func:`reconstruct` for one sequence (or a batch, under vmap)."""
 
@@ -62,19 +79,27 @@ class Reconstruction(eqx.Module):
         return from_frames(proj + self.translations[:, :, None])
 
 
-def _factorize(W, visible, outliers, *, k, method, form, complete, options) -> Factorization:
+def _factorize(W, visible, outliers, *, k, method, form, complete, options: Options) -> Factorization:
     augmented = form == "augmented"
     rank = 3 * k + augmented
-    budget = dict(max_steps=options["max_steps"], rtol=options["rtol"])
+    budget = dict(max_steps=options.max_steps, rtol=options.rtol)
     if method == "direct":
         return factorize_prepared(W, visible, rank=rank, register=not augmented, complete=complete, **budget)
     if method == "wang":
-        keys = ("threshold", "passes", "weighted")
-        return robust.wang(W, visible, rank=rank, complete=complete, **budget, **{k: options[k] for k in keys})
+        return robust.wang(
+            W,
+            visible,
+            rank=rank,
+            complete=complete,
+            threshold=options.threshold,
+            passes=options.passes,
+            weighted=options.weighted,
+            **budget,
+        )
     if method == "huynh":
-        return robust.huynh(W, visible, rank=rank, complete=complete, iterations=options["iterations"], **budget)
+        return robust.huynh(W, visible, rank=rank, complete=complete, iterations=options.iterations, **budget)
     if method == "ke_kanade":
-        return robust.ke_kanade(W, visible, rank=rank, complete=complete, threshold=options["threshold"])
+        return robust.ke_kanade(W, visible, rank=rank, complete=complete, threshold=options.threshold)
     return robust.oracle(W, visible, outliers, rank=rank, **budget)
 
 
@@ -100,18 +125,11 @@ def reconstruct_prepared(
     method: str = "direct",
     form: str = "augmented",
     complete: bool = False,
-    threshold: float = 4.0,
-    passes: int = 4,
-    weighted: bool = True,
-    iterations: int = 10,
-    max_steps: int = 500,
-    rtol: float = 1e-10,
+    options: Options | None = None,
 ) -> Reconstruction:
     """:func:`reconstruct` on tracks already checked by :func:`prepare_tracks` (zero-filled,
     with their effective mask): the pure, jit-compiled pipeline that a batch vmaps."""
-    options = dict(
-        threshold=threshold, passes=passes, weighted=weighted, iterations=iterations, max_steps=max_steps, rtol=rtol
-    )
+    options = Options() if options is None else options
     fac = _factorize(W, visible, outliers, k=k, method=method, form=form, complete=complete, options=options)
     if form == "augmented":
         M, S, t, _ = split_translation(fac.M, fac.S)
@@ -196,18 +214,5 @@ def reconstruct(
         if outliers.shape != vis.shape:
             raise ValueError(f"outliers must have shape (m, n) = {vis.shape}; got {outliers.shape}")
     complete = not isinstance(vis, jax.core.Tracer) and bool(vis.all())
-    return reconstruct_prepared(
-        W0,
-        vis,
-        outliers,
-        k=k,
-        method=method,
-        form=form,
-        complete=complete,
-        threshold=threshold,
-        passes=passes,
-        weighted=weighted,
-        iterations=iterations,
-        max_steps=max_steps,
-        rtol=rtol,
-    )
+    options = Options(threshold, passes, weighted, iterations, max_steps, rtol)
+    return reconstruct_prepared(W0, vis, outliers, k=k, method=method, form=form, complete=complete, options=options)
