@@ -65,6 +65,14 @@ def _anchored(inliers, visible):
     return jnp.where(inliers, 1.0, jnp.where(visible, ANCHOR, 0.0))
 
 
+def threshold_inliers(
+    W: Float[Array, "2m n"], fit: Float[Array, "2m n"], visible: Bool[Array, "m n"], factor
+) -> Bool[Array, "m n"]:
+    """Observed entries whose ``|e_ij|`` is at most ``factor * sigma_hat``."""
+    errors = entry_errors(W, fit)
+    return visible & (errors <= factor * robust_scale(errors, visible))
+
+
 def _zero_translations(W):
     return jnp.zeros((W.shape[0] // 2, 2), W.dtype)
 
@@ -98,8 +106,7 @@ def wang(
 
     def reject_and_refit(carry, factor):
         M, S, _, _, _ = carry
-        errors = entry_errors(W, M @ S)
-        inliers = visible & (errors <= factor * robust_scale(errors, visible))
+        inliers = threshold_inliers(W, M @ S, visible, factor)
         M, S, steps, converged = masked_als(W, _anchored(inliers, visible), M, max_steps=max_steps, rtol=rtol)
         return (M, S, inliers, steps, converged), None
 
@@ -157,8 +164,7 @@ def huynh(
 
     init = (M, S, visible, jnp.array(0), jnp.array(True))
     (M, S, _, steps, converged), _ = jax.lax.scan(correct, init, factors)
-    errors = entry_errors(W, M @ S)
-    inliers = visible & (errors <= end * robust_scale(errors, visible))
+    inliers = threshold_inliers(W, M @ S, visible, end)
     return finish(W, inliers, M, S, _zero_translations(W), steps, converged)
 
 
@@ -178,8 +184,7 @@ def ke_kanade(
     sigma_hat``, the same rule as :func:`wang`'s, so that detection can be compared."""
     M, _, _, _ = initial_fit(W, visible, rank, complete=complete)
     M, S, steps, converged = ke_kanade_l1(W, visible, M, max_steps=max_steps, rtol=rtol)
-    errors = entry_errors(W, M @ S)
-    inliers = visible & (errors <= threshold * robust_scale(errors, visible))
+    inliers = threshold_inliers(W, M @ S, visible, threshold)
     return finish(W, inliers, M, S, _zero_translations(W), steps, converged)
 
 
