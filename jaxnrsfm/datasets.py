@@ -18,7 +18,7 @@ converting them to JAX arrays is left to the caller, who decides on float64
 
 import csv
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -180,6 +180,38 @@ def load_lrmf_dino(path: str | os.PathLike = "dino_trimmed", *, root: str | os.P
     return Tracks(np.where(mask, tracks, np.nan), rows[:, 0], Path(path).stem)
 
 
+def load_mat(path: str | os.PathLike, variable: str = "W") -> Tracks:
+    """Tracks from any MATLAB (v4-v7) file: the ``2m x n`` matrix ``variable``, in the
+    library's layout (NaN where missing), as in Akhter's files.
+
+    Ground truth comes along when the file has it in Akhter's layout: ``S`` (``3m x n``)
+    becomes ``shapes`` and ``Rs`` (``2m x 3``) ``rotations``; a ``S`` or ``Rs`` of another
+    shape is not taken for ground truth and is ignored.
+
+    **Raises:** ``ValueError`` for a file that is not a MATLAB file, a missing or
+    non-numeric variable, or a malformed tracking matrix.
+    """
+    path = Path(path)
+    try:
+        d = _loadmat(path, (variable,))
+    except (scipy.io.matlab.MatReadError, NotImplementedError) as err:
+        # v7.3 files are HDF5 and raise NotImplementedError in scipy.
+        raise ValueError(f"{path}: not a readable MATLAB v4-v7 file ({err})") from None
+    raw = np.asarray(d[variable])
+    if not (np.issubdtype(raw.dtype, np.number) or raw.dtype == bool) or np.iscomplexobj(raw):
+        raise ValueError(f"{path}: variable {variable!r} is not a real numeric matrix (it holds {raw.dtype} data)")
+    W = raw.astype(np.float64)
+    _check_tracks(W, f"{path}, variable {variable!r}")
+    F, P = W.shape[0] // 2, W.shape[1]
+    shapes = rotations = None
+    if "S" in d and np.shape(d["S"]) == (3 * F, P):
+        shapes = np.asarray(d["S"], np.float64).reshape(F, 3, P)
+    if "Rs" in d and np.shape(d["Rs"]) == (2 * F, 3):
+        R2 = np.asarray(d["Rs"], np.float64).reshape(F, 2, 3)
+        rotations = np.concatenate([R2, np.cross(R2[:, 0], R2[:, 1])[:, None]], axis=1)
+    return replace(_tracks(W, None, path), shapes=shapes, rotations=rotations)
+
+
 def load_npz(path: str | os.PathLike) -> Tracks:
     """Tracks from a ``.npz`` file: array ``W`` (``2m x n``, NaN where missing) and an
     optional boolean ``visible`` (``m x n``) that marks further entries missing."""
@@ -212,14 +244,17 @@ def load_csv(path: str | os.PathLike) -> Tracks:
     return _tracks(np.array(rows, np.float64).reshape(len(rows), -1), None, path)
 
 
-def load_tracks(path: str | os.PathLike) -> Tracks:
-    """Tracks from a ``.npz`` or ``.csv`` file (see :func:`load_npz`, :func:`load_csv`)."""
+def load_tracks(path: str | os.PathLike, variable: str = "W") -> Tracks:
+    """Tracks from a ``.npz``, ``.csv`` or ``.mat`` file (see :func:`load_npz`,
+    :func:`load_csv`, :func:`load_mat`; ``variable`` names the ``.mat`` file's matrix)."""
     suffix = Path(path).suffix.lower()
     if suffix == ".npz":
         return load_npz(path)
     if suffix == ".csv":
         return load_csv(path)
-    raise ValueError(f"{path}: unknown track file type {suffix!r}; expected .npz or .csv")
+    if suffix == ".mat":
+        return load_mat(path, variable)
+    raise ValueError(f"{path}: unknown track file type {suffix!r}; expected .npz, .csv or .mat")
 
 
 def _tracks(W: np.ndarray, visible: np.ndarray | None, path: Path) -> Tracks:

@@ -1,5 +1,13 @@
+import json
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+import scipy.io
 from typer.testing import CliRunner
 
+from jaxnrsfm import datasets
 from jaxnrsfm.cli import app
 
 
@@ -10,3 +18,167 @@ def test_demo_prints_table_and_writes_figure(tmp_path):
     for text in ("registered rank 12", "augmented rank 13", "10% outliers", "20% missing", "e3D", "ok"):
         assert text in result.output
     assert out.stat().st_size > 10_000 and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+# --- jaxnrsfm reconstruct -------------------------------------------------------------
+
+OUTPUTS = ("W_hat", "inliers", "shapes", "rotations", "weights", "bases", "translations")
+
+
+def _data_dir():
+    try:
+        return datasets.data_dir()
+    except FileNotFoundError:
+        return None
+
+
+DATA = _data_dir()
+
+
+def _run(*args):
+    return CliRunner().invoke(app, ["reconstruct", *map(str, args)])
+
+
+def _summary(result):
+    assert result.exit_code == 0, result.output
+    return json.loads(result.stdout)
+
+
+def _low_rank_tracks(m=12, n=20, noise=0.01, seed=0):
+    # A rigid object (k=1) under random orthographic cameras, rank 4 with translations, plus noise.
+    rng = np.random.default_rng(seed)
+    S = rng.normal(size=(3, n))
+    R = np.linalg.qr(rng.normal(size=(m, 3, 3)))[0][:, :2]
+    W = np.einsum("iab,bn->ian", R, S) + rng.normal(size=(m, 2, 1))
+    return W.reshape(2 * m, n) + noise * rng.normal(size=(2 * m, n))
+
+
+@pytest.mark.skipif(
+    DATA is None, reason="real data absent: set $JAXNRSFM_DATA or provide ../shared/data next to the repository"
+)
+def test_reconstruct_mat_csv_npz_agree(tmp_path):
+    """The same Akhter tracks given as .mat, .csv and .npz give the same reconstruction."""
+    mat = DATA / "akhter" / "yoga.mat"
+    W = scipy.io.loadmat(mat)["W"]
+    csv = tmp_path / "yoga.csv"
+    np.savetxt(csv, W, fmt="%.17g", delimiter=",")  # the layout load_csv reads: W itself, exact
+    npz = tmp_path / "yoga.npz"
+    np.savez(npz, W=W)
+    common = ["--k", 2, "--frames", "0:40"]
+    runs = {}
+    for path in (mat, csv, npz):
+        out = tmp_path / f"{path.suffix[1:]}.npz"
+        summary = _summary(_run(path, *common, "--out", out))
+        with np.load(out) as f:
+            assert sorted(f.files) == sorted(OUTPUTS)
+            runs[path.suffix] = summary, {name: f[name] for name in OUTPUTS}
+    (s_mat, r_mat), (s_csv, r_csv), (s_npz, r_npz) = runs[".mat"], runs[".csv"], runs[".npz"]
+    assert r_mat["W_hat"].shape == (80, 41) and r_mat["shapes"].shape == (40, 3, 41)
+    for other in (r_csv, r_npz):
+        np.testing.assert_allclose(other["W_hat"], r_mat["W_hat"], rtol=0, atol=1e-12)
+    assert s_mat["status"] == "success" and s_mat["status_message"] == "the reconstruction succeeded"
+    assert s_mat["frames"] == 40 and s_mat["points"] == 41 and s_mat["outliers"] == 0
+    assert s_mat["mean_reprojection_error"] == pytest.approx(s_csv["mean_reprojection_error"], rel=1e-9)
+    assert s_mat["mean_reprojection_error"] < 0.01 and s_mat["time_s"] > 0
+    # Only the .mat file carries ground truth (S); k=2 on 40 frames of yoga gives e3D ~0.05.
+    assert 0 < s_mat["e3d"] < 0.2 and s_csv["e3d"] is None and s_npz["e3d"] is None
+
+
+def test_reconstruct_exports_and_counts_outliers(tmp_path):
+    W = _low_rank_tracks()
+    W[3, 5] += 5.0  # one gross outlier (500 noise sigmas): v of frame 1, point 5
+    np.savez(tmp_path / "t.npz", W=W)
+    args = ["--k", 1, "--method", "wang", "--export", tmp_path / "s.ply", "--out", tmp_path / "o"]
+    summary = _summary(_run(tmp_path / "t.npz", *args))
+    assert summary["outliers"] == 1 and summary["status"] == "success"
+    assert summary["mean_reprojection_error"] < 0.05  # over the inliers: the noise level
+    assert summary["export_files"] == 12 and summary["export"] == str(tmp_path / "s_0000.ply")
+    assert sorted(p.name for p in tmp_path.glob("s_*.ply")) == [f"s_{i:04d}.ply" for i in range(12)]
+    with np.load(tmp_path / "o") as f:  # written under the name given, no .npz appended
+        assert np.argwhere(~f["inliers"]).tolist() == [[1, 5]]
+
+
+@pytest.fixture
+def restore_x64():
+    yield
+    jax.config.update("jax_enable_x64", True)  # the command sets it; conftest's choice must survive
+
+
+def test_reconstruct_float32(tmp_path, restore_x64):
+    np.savez(tmp_path / "t.npz", W=_low_rank_tracks())
+    summary = _summary(_run(tmp_path / "t.npz", "--k", 1, "--float32", "--out", tmp_path / "o.npz"))
+    assert summary["dtype"] == "float32" and summary["status"] == "success"
+    assert summary["mean_reprojection_error"] < 0.02  # the noise level, 0.01 per coordinate
+    with np.load(tmp_path / "o.npz") as f:
+        assert f["W_hat"].dtype == np.float32 and f["shapes"].dtype == np.float32
+
+
+def _bad_inputs(tmp: Path) -> dict:
+    W = _low_rank_tracks(m=4, n=5)
+    np.savez(tmp / "good.npz", W=W)
+    np.savez(tmp / "odd.npz", W=W[:-1])
+    np.savez(tmp / "vis.npz", W=W, visible=np.ones((3, 5), bool))
+    np.savez(tmp / "noW.npz", tracks=W)
+    (tmp / "garbage.npz").write_bytes(b"not a zip file")
+    (tmp / "garbage.mat").write_bytes(b"not a MATLAB file")
+    (tmp / "text.csv").write_text("1,2,3\n4,x,6\n")
+    (tmp / "ragged.csv").write_text("1,2,3\n4,5\n")
+    scipy.io.savemat(tmp / "noW.mat", {"X": W})
+    scipy.io.savemat(tmp / "chars.mat", {"W": np.array(["ab", "cd"])})
+    (tmp / "t.txt").write_text("1,2\n")
+    good = tmp / "good.npz"
+    return {
+        "missing file": ([tmp / "nowhere.npz", "--k", 1], "no such file"),
+        "unreadable npz": ([tmp / "garbage.npz", "--k", 1], "not a .npz file"),
+        "unreadable mat": ([tmp / "garbage.mat", "--k", 1], "not a readable MATLAB"),
+        "non-numeric csv": ([tmp / "text.csv", "--k", 1], "not a number"),
+        "ragged csv": ([tmp / "ragged.csv", "--k", 1], "different numbers of columns"),
+        "odd rows": ([tmp / "odd.npz", "--k", 1], "even number of rows"),
+        "visible shape": ([tmp / "vis.npz", "--k", 1], "visible has shape"),
+        "npz without W": ([tmp / "noW.npz", "--k", 1], "lacks the array 'W'"),
+        "mat without W": ([tmp / "noW.mat", "--k", 1], "lacks the variable 'W'"),
+        "missing --var": ([tmp / "noW.mat", "--k", 1, "--var", "Q"], "lacks the variable 'Q'"),
+        "non-numeric mat": ([tmp / "chars.mat", "--k", 1], "not a real numeric matrix"),
+        "unknown type": ([tmp / "t.txt", "--k", 1], "unknown track file type"),
+        "k too large": ([good, "--k", 2], "larger than the data allows"),
+        "k zero": ([good, "--k", 0], "positive integer"),
+        "unknown method": ([good, "--k", 1, "--method", "magic"], "unknown method"),
+        "bad frames": ([good, "--k", 1, "--frames", "a:b"], "--frames"),
+        "no frames": ([good, "--k", 1, "--frames", "10:20"], "selects no frame"),
+        "export format": ([good, "--k", 1, "--export", tmp / "s.stl"], "unknown export format"),
+        "out directory": ([good, "--k", 1, "--out", tmp / "no" / "o.npz"], "does not exist"),
+    }
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        "missing file",
+        "unreadable npz",
+        "unreadable mat",
+        "non-numeric csv",
+        "ragged csv",
+        "odd rows",
+        "visible shape",
+        "npz without W",
+        "mat without W",
+        "missing --var",
+        "non-numeric mat",
+        "unknown type",
+        "k too large",
+        "k zero",
+        "unknown method",
+        "bad frames",
+        "no frames",
+        "export format",
+        "out directory",
+    ],
+)
+def test_reconstruct_bad_input_is_one_line(tmp_path, case):
+    """Bad input: one line on stderr, exit status 1, no traceback, nothing on stdout."""
+    args, fragment = _bad_inputs(tmp_path)[case]
+    result = _run(*args)
+    assert result.exit_code == 1, result.output
+    assert "Traceback" not in result.output and result.stdout == ""
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and fragment in lines[0], result.output
