@@ -27,10 +27,11 @@ FORMS = ("augmented", "registered")
 class Options(eqx.Module):
     """The methods' tuning knobs (Python scalars: static under jit)."""
 
-    threshold: float = 4.0
-    """Outlier threshold, a multiple of the robust residual scale (``wang``, ``ke_kanade``)."""
-    passes: int = 4
-    """Rejection passes of the robust algorithm (``wang``)."""
+    threshold: float | None = None
+    """Outlier threshold, a multiple of the robust residual scale; ``None`` chooses it
+    from the data (:func:`jaxnrsfm.robust.bayes_threshold`)."""
+    passes: int = 3
+    """Minimum number of rejection passes of the robust algorithm (``wang``)."""
     weighted: bool = True
     """Step 5's weighted factorization of the inliers (``wang``)."""
     iterations: int = 10
@@ -161,8 +162,8 @@ def reconstruct(
     method: Literal["direct", "wang", "huynh", "ke_kanade", "oracle"] = "direct",
     form: Literal["augmented", "registered"] = "augmented",
     outliers: ArrayLike | None = None,
-    threshold: float = 4.0,
-    passes: int = 4,
+    threshold: float | None = None,
+    passes: int = 3,
     weighted: bool = True,
     iterations: int = 10,
     max_steps: int = 500,
@@ -185,7 +186,8 @@ def reconstruct(
       on its visible centroid, eq. 8; ``method="direct"`` only).
     - `outliers`: ``(m, n)`` true outlier mask, for ``method="oracle"`` only.
     - `threshold`, `passes`, `weighted`: the robust algorithm's outlier threshold (a
-      multiple of the robust residual scale), rejection passes and step-5 weighting.
+      multiple of the robust residual scale; ``None``, the default, picks it from the
+      data), minimum number of rejection passes and step-5 weighting.
     - `iterations`: Huynh et al.'s correction iterations.
     - `max_steps`, `rtol`: budget of the missing-data solver.
 
@@ -205,7 +207,7 @@ def reconstruct(
         raise ValueError(f"k (the number of shape bases) must be a positive integer; got {k!r}")
     if (method == "oracle") != (outliers is not None):
         raise ValueError("method='oracle' needs the true `outliers` mask, and only it takes one")
-    if not threshold > 0 or passes < 1 or iterations < 1:
+    if not (threshold is None or threshold > 0) or passes < 1 or iterations < 1:
         raise ValueError(f"threshold must be > 0 and passes, iterations >= 1; got {threshold}, {passes}, {iterations}")
     rank = 3 * k + (form == "augmented")
     W0, vis = prepare_tracks(W, visible, rank=rank, rank_name=f"k={k} ({form} rank {rank})")
