@@ -4,6 +4,7 @@ The flow is tracks -> factorization -> metric upgrade -> Euclidean reconstructio
 metrics; see ``README.md``.
 """
 
+from .batch import reconstruct_batch as reconstruct_batch
 from .factorize import Factorization as Factorization
 from .factorize import factorize as factorize
 from .metrics import (

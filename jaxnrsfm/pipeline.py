@@ -18,7 +18,7 @@ from .status import Status
 from .tracks import from_frames, prepare_tracks
 from .upgrade import metric_upgrade, split_translation
 
-METHODS = ("direct", "wang", "huynh", "ke_kanade", "oracle")
+METHODS = ("direct", "wang", "huynh", "ke_kanade", "huber", "l1", "oracle")
 """Reconstruction strategies available to :func:`reconstruct`."""
 FORMS = ("augmented", "registered")
 """Factorization forms: rank ``3k + 1`` without registration, or rank ``3k`` registered."""
@@ -36,6 +36,8 @@ class Options(eqx.Module):
     """Step 5's weighted factorization of the inliers (``wang``)."""
     iterations: int = 10
     """Pseudo-observation iterations (``huynh``)."""
+    delta: float = 1.345
+    """Huber loss parameter in robust scales (``huber``)."""
     max_steps: int = 500
     """Step budget of the missing-data solver."""
     rtol: float = 1e-10
@@ -101,15 +103,23 @@ def _factorize(W, visible, outliers, *, k, method, form, complete, options: Opti
         return robust.huynh(W, visible, rank=rank, complete=complete, iterations=options.iterations, **budget)
     if method == "ke_kanade":
         return robust.ke_kanade(W, visible, rank=rank, complete=complete, threshold=options.threshold)
+    if method in ("huber", "l1"):
+        delta = options.delta if method == "huber" else None
+        return robust.huber(
+            W, visible, rank=rank, complete=complete, delta=delta, threshold=options.threshold, **budget
+        )
     return robust.oracle(W, visible, outliers, rank=rank, **budget)
 
 
-def _status(fac: Factorization, shapes, rank: int) -> Status:
-    # Too few inliers to determine a frame's motion or a point's structure, or more
-    # rejected than kept (the median scale breaks down): the fit cannot be trusted.
-    inliers, observed = fac.inliers, jnp.maximum(fac.inliers.sum(), 1)
+def _status(W, visible, fac: Factorization, shapes, rank: int, detects: bool) -> Status:
+    # Too few inliers to determine a frame's motion or a point's structure, more rejected
+    # than kept (the median scale breaks down), or kept residuals that do not look like
+    # noise: the fit cannot be trusted.
+    inliers = fac.inliers
     starved = jnp.any(inliers.sum(1) < rank) | jnp.any(2 * inliers.sum(0) < rank)
-    starved |= inliers.sum() < 0.5 * observed
+    starved |= inliers.sum() < 0.5 * visible.sum()
+    if detects:
+        starved |= robust.rayleigh_misfit(W, fac.W_hat, inliers) > robust.MISFIT
     finite = jnp.all(jnp.isfinite(fac.W_hat)) & jnp.all(jnp.isfinite(shapes))
     status = Status.where(fac.converged, Status.success, Status.not_converged)
     status = Status.where(starved, Status.too_many_outliers, status)
@@ -150,7 +160,7 @@ def reconstruct_prepared(
         fac.cost,
         eu.metric_residual,
         fac.steps,
-        _status(fac, eu.shapes, M.shape[1] + (form == "augmented")),
+        _status(W, visible, fac, eu.shapes, M.shape[1] + (form == "augmented"), method not in ("direct", "oracle")),
     )
 
 
@@ -159,13 +169,14 @@ def reconstruct(
     visible: ArrayLike | None = None,
     *,
     k: int,
-    method: Literal["direct", "wang", "huynh", "ke_kanade", "oracle"] = "direct",
+    method: Literal["direct", "wang", "huynh", "ke_kanade", "huber", "l1", "oracle"] = "direct",
     form: Literal["augmented", "registered"] = "augmented",
     outliers: ArrayLike | None = None,
     threshold: float | None = None,
     passes: int = 3,
     weighted: bool = True,
     iterations: int = 10,
+    delta: float = 1.345,
     max_steps: int = 500,
     rtol: float = 1e-10,
 ) -> Reconstruction:
@@ -180,7 +191,9 @@ def reconstruct(
       handling); ``"wang"`` is the paper's robust algorithm (section 4.2,
       :func:`jaxnrsfm.robust.wang`); ``"huynh"`` is Huynh et al.'s pseudo-observation
       correction; ``"ke_kanade"`` is Ke & Kanade's L1 factorization by alternating
-      linear programs; ``"oracle"`` is least squares told the true ``outliers``.
+      linear programs; ``"huber"`` and ``"l1"`` minimise the Huber or L1 loss of the
+      reprojection residuals with optimistix (:mod:`jaxnrsfm.objective`); ``"oracle"``
+      is least squares told the true ``outliers``.
     - `form`: ``"augmented"`` (the paper's rank-(3k+1) factorization, eq. 12, no
       registration; the default) or ``"registered"`` (rank 3k after centring each frame
       on its visible centroid, eq. 8; ``method="direct"`` only).
@@ -189,6 +202,7 @@ def reconstruct(
       multiple of the robust residual scale; ``None``, the default, picks it from the
       data), minimum number of rejection passes and step-5 weighting.
     - `iterations`: Huynh et al.'s correction iterations.
+    - `delta`: the Huber loss parameter, in robust residual scales (``method="huber"``).
     - `max_steps`, `rtol`: budget of the missing-data solver.
 
     **Returns:** a :class:`Reconstruction`; its ``status`` reports, per trial, a solver
@@ -207,6 +221,8 @@ def reconstruct(
         raise ValueError(f"k (the number of shape bases) must be a positive integer; got {k!r}")
     if (method == "oracle") != (outliers is not None):
         raise ValueError("method='oracle' needs the true `outliers` mask, and only it takes one")
+    if not delta > 0:
+        raise ValueError(f"the Huber parameter delta must be > 0; got {delta}")
     if not (threshold is None or threshold > 0) or passes < 1 or iterations < 1:
         raise ValueError(f"threshold must be > 0 and passes, iterations >= 1; got {threshold}, {passes}, {iterations}")
     rank = 3 * k + (form == "augmented")
@@ -216,5 +232,5 @@ def reconstruct(
         if outliers.shape != vis.shape:
             raise ValueError(f"outliers must have shape (m, n) = {vis.shape}; got {outliers.shape}")
     complete = not isinstance(vis, jax.core.Tracer) and bool(vis.all())
-    options = Options(threshold, passes, weighted, iterations, max_steps, rtol)
+    options = Options(threshold, passes, weighted, iterations, delta, max_steps, rtol)
     return reconstruct_prepared(W0, vis, outliers, k=k, method=method, form=form, complete=complete, options=options)

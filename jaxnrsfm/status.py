@@ -12,6 +12,7 @@ class Status(eqx.Enumeration):
     not_converged = "the iterative solver stopped at its step limit before reaching its tolerance"
     too_many_outliers = (
         "too many entries were rejected as outliers: a frame or point kept fewer inliers than the rank needs, "
-        "or more than half of the observations were rejected"
+        "more than half of the observations were rejected, or the kept residuals do not look like noise "
+        "(the outliers are more than the method can handle)"
     )
     nonfinite = "the solution contains non-finite values (degenerate data)"

@@ -1,0 +1,84 @@
+"""Many sequences at once: the single-sequence pipeline mapped over a leading trial axis.
+
+There is no batched algorithm here, only a choice of how to map
+:func:`~jaxnrsfm.pipeline.reconstruct_prepared`:
+
+- ``"map"`` (the default): ``jax.lax.map``, one trial after another inside one compiled
+  program. The pipeline's solvers are while loops; under ``vmap`` every trial would run
+  as many steps as the slowest one, and the robust method's step counts vary a lot
+  between trials (``benchmarks/batching.py`` measures the three strategies);
+- ``"vmap"``: all trials in lockstep, which pays on an accelerator with spare width;
+- ``"loop"``: a Python loop over the jit-compiled single trial.
+"""
+
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from .pipeline import Options, Reconstruction, reconstruct_prepared
+from .tracks import prepare_tracks
+
+STRATEGIES = ("map", "vmap", "loop")
+
+
+def reconstruct_batch(
+    W: ArrayLike,
+    visible: ArrayLike | None = None,
+    *,
+    k: int,
+    method: str = "wang",
+    outliers: ArrayLike | None = None,
+    strategy: Literal["map", "vmap", "loop"] = "map",
+    options: Options | None = None,
+) -> Reconstruction:
+    """:func:`~jaxnrsfm.reconstruct` for ``T`` sequences of equal size: ``W`` is
+    ``(T, 2m, n)``, ``visible`` and ``outliers`` ``(T, m, n)``. Every trial is validated
+    (before anything is compiled) like a single sequence; the result has a leading ``T``
+    axis and a ``status`` per trial, so a trial that fails does not stop the others."""
+    if strategy not in STRATEGIES:
+        raise ValueError(f"unknown strategy {strategy!r}; choose one of {', '.join(STRATEGIES)}")
+    W = np.asarray(W) if not isinstance(W, jax.Array) else W
+    if W.ndim != 3:
+        raise ValueError(f"a batch of tracks must have shape (T, 2m, n); got {W.shape}")
+    rank = 3 * k + 1
+    prepared = [
+        prepare_tracks(W[t], None if visible is None else visible[t], rank=rank, rank_name=f"k={k} (rank {rank})")
+        for t in range(W.shape[0])
+    ]
+    W0 = jnp.stack([w for w, _ in prepared])
+    vis = jnp.stack([v for _, v in prepared])
+    if outliers is not None:
+        outliers = jnp.asarray(outliers, bool)
+        if outliers.shape != vis.shape:
+            raise ValueError(f"outliers must have shape (T, m, n) = {vis.shape}; got {outliers.shape}")
+    complete = bool(vis.all())
+    options = Options() if options is None else options
+    statics = dict(k=k, method=method, complete=complete, options=options)
+    if strategy == "loop":
+        trials = [
+            reconstruct_prepared(W0[t], vis[t], None if outliers is None else outliers[t], **statics)
+            for t in range(W0.shape[0])
+        ]
+        return jax.tree.map(lambda *xs: jnp.stack(xs), *trials)
+    return _mapped(W0, vis, outliers, vectorize=strategy == "vmap", **statics)
+
+
+@eqx.filter_jit
+def _mapped(
+    W: Float[Array, "T 2m n"],
+    visible: Bool[Array, "T m n"],
+    outliers: Bool[Array, "T m n"] | None,
+    *,
+    vectorize: bool,
+    **statics,
+) -> Reconstruction:
+    def run(args):
+        return reconstruct_prepared(*args, **statics)
+
+    if vectorize:
+        return jax.vmap(run)((W, visible, outliers))
+    return jax.lax.map(run, (W, visible, outliers))
