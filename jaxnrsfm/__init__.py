@@ -5,6 +5,7 @@ metrics; see ``README.md``.
 """
 
 from .batch import reconstruct_batch as reconstruct_batch
+from .choose import choose_k as choose_k
 from .factorize import Factorization as Factorization
 from .factorize import factorize as factorize
 from .metrics import (
@@ -40,6 +41,8 @@ from .pipeline import (
 from .pipeline import (
     reconstruct_prepared as reconstruct_prepared,
 )
+from .refine import nuclear_shapes as nuclear_shapes
+from .refine import refine_upgrade as refine_upgrade
 from .status import Status as Status
 from .synthetic import (
     SyntheticSequence as SyntheticSequence,

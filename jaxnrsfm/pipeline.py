@@ -14,6 +14,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from . import robust
 from .factorize import Factorization, factorize_prepared
+from .refine import refine_upgrade
 from .status import Status
 from .tracks import from_frames, prepare_tracks
 from .upgrade import metric_upgrade, split_translation
@@ -42,6 +43,12 @@ class Options(eqx.Module):
     """Step budget of the missing-data solver."""
     rtol: float = 1e-10
     """Relative cost decrease below which the missing-data solver stops."""
+    refine: bool = False
+    """Replace the upgrade's shapes by the nuclear-norm shapes given its rotations
+    (:func:`jaxnrsfm.refine.refine_upgrade`, Dai et al.'s BMM shape step)."""
+    trace_norm: float = 0.0
+    """With ``refine``: 0 keeps the upgrade's rotations; > 0 takes them from Dai et al.'s
+    trace-norm relaxation with this weight (:func:`jaxnrsfm.refine.trace_norm_triple`)."""
 
 
 class Reconstruction(eqx.Module):
@@ -147,6 +154,8 @@ def reconstruct_prepared(
     else:
         M, S, t = fac.M, fac.S, fac.translations
     eu = metric_upgrade(M, S, t, k)
+    if options.refine:
+        eu = refine_upgrade(eu, M, fac.W_hat, k, trace_norm=options.trace_norm)
     return Reconstruction(
         fac.W_hat,
         fac.inliers,
@@ -179,6 +188,8 @@ def reconstruct(
     delta: float = 1.345,
     max_steps: int = 500,
     rtol: float = 1e-10,
+    refine: bool = False,
+    trace_norm: float = 0.0,
 ) -> Reconstruction:
     """Reconstruct a nonrigid object from its tracks.
 
@@ -204,6 +215,9 @@ def reconstruct(
     - `iterations`: Huynh et al.'s correction iterations.
     - `delta`: the Huber loss parameter, in robust residual scales (``method="huber"``).
     - `max_steps`, `rtol`: budget of the missing-data solver.
+    - `refine`, `trace_norm`: recover the shapes by Dai et al.'s nuclear-norm step given
+      the rotations (:func:`jaxnrsfm.refine.refine_upgrade`); ``trace_norm > 0`` takes
+      the rotations from the trace-norm relaxation with that weight.
 
     **Returns:** a :class:`Reconstruction`; its ``status`` reports, per trial, a solver
     that did not converge or more outliers than the data can lose.
@@ -232,5 +246,7 @@ def reconstruct(
         if outliers.shape != vis.shape:
             raise ValueError(f"outliers must have shape (m, n) = {vis.shape}; got {outliers.shape}")
     complete = not isinstance(vis, jax.core.Tracer) and bool(vis.all())
-    options = Options(threshold, passes, weighted, iterations, delta, max_steps, rtol)
+    if not trace_norm >= 0:
+        raise ValueError(f"trace_norm must be >= 0; got {trace_norm}")
+    options = Options(threshold, passes, weighted, iterations, delta, max_steps, rtol, refine, trace_norm)
     return reconstruct_prepared(W0, vis, outliers, k=k, method=method, form=form, complete=complete, options=options)

@@ -1,0 +1,97 @@
+"""e3D on the Akhter motion-capture sequences beside the published PTA and BMM numbers.
+
+For every sequence: k from the tracks alone (:func:`jaxnrsfm.choose_k`), then the same
+method with the same settings:
+
+* ``upgrade``: ``reconstruct(W, k=k)`` (metric upgrade only, the default pipeline);
+* ``refine/GN``: ``refine=True`` (nuclear-norm shapes given the upgrade's rotations);
+* ``refine/TN``: ``refine=True, trace_norm=0.1`` (nuclear-norm shapes given Dai et al.'s
+  trace-norm rotations).
+
+Writes a figure of reconstructed (red) vs true (blue) skeletons for a few frames of every
+sequence. Run: ``python benchmarks/real_sequences.py [--out real_sequences.png]``.
+Needs ``shared/data`` (see ``jaxnrsfm.datasets.data_dir``).
+"""
+
+import argparse
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+import jaxnrsfm as nr  # noqa: E402
+from jaxnrsfm import datasets  # noqa: E402
+
+PTA = {"drink": 0.0250, "pickup": 0.2369, "yoga": 0.1625, "stretch": 0.1088, "dance": 0.2956}
+BMM = {"drink": 0.027, "pickup": 0.173, "yoga": 0.115, "stretch": 0.103, "dance": 0.186}
+VARIANTS = {"upgrade": {}, "refine/GN": {"refine": True}, "refine/TN": {"refine": True, "trace_norm": 0.1}}
+FIGURE_VARIANT = "refine/TN"
+
+
+def run(name: str) -> dict:
+    seq = datasets.load_akhter(name)
+    k = nr.choose_k(seq.W, seq.visible)
+    out = {"k": k, "seq": seq}
+    for label, kwargs in VARIANTS.items():
+        t = time.perf_counter()
+        rec = nr.reconstruct(seq.W, seq.visible, k=k, **kwargs)
+        e = float(nr.e3d(rec.shapes, seq.shapes))
+        out[label] = (e, time.perf_counter() - t, rec)
+    return out
+
+
+def figure(results: dict, path: str, frames_per_sequence: int = 3) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(results)
+    fig = plt.figure(figsize=(3.2 * frames_per_sequence, 3.2 * len(names)))
+    for row, name in enumerate(names):
+        seq, rec = results[name]["seq"], results[name][FIGURE_VARIANT][2]
+        Y = seq.shapes - seq.shapes.mean(axis=2, keepdims=True)
+        X = np.asarray(nr.align_shapes(rec.shapes, seq.shapes))
+        scale = np.mean(np.std(seq.shapes, axis=2))
+        m = Y.shape[0]
+        for col, f in enumerate(np.linspace(0, m - 1, frames_per_sequence + 2)[1:-1].astype(int)):
+            ax = fig.add_subplot(len(names), frames_per_sequence, row * frames_per_sequence + col + 1, projection="3d")
+            for P, color in ((Y[f], "tab:blue"), (X[f], "tab:red")):
+                if seq.edges is not None:
+                    for a, b in seq.edges:
+                        ax.plot(*P[:, [a, b]], color=color, lw=1.2)
+                ax.scatter(*P, s=4, color=color)
+            err = np.mean(np.linalg.norm(X[f] - Y[f], axis=0)) / scale
+            ax.set_title(f"{name} frame {f}  e3D_f={err:.3f}", fontsize=8)
+            lim = np.abs(Y[f]).max() * 1.1
+            ax.set(xlim=(-lim, lim), ylim=(-lim, lim), zlim=(-lim, lim))
+            ax.set_box_aspect((1, 1, 1))
+            ax.tick_params(labelsize=5)
+    fig.suptitle(f"truth (blue) vs {FIGURE_VARIANT} (red), one orthogonal alignment per sequence", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="real_sequences.png", help="figure path")
+    parser.add_argument("--sequences", default=",".join(datasets.AKHTER_SEQUENCES))
+    args = parser.parse_args()
+    results = {}
+    head = f"{'sequence':8} {'k':>2} " + " ".join(f"{v:>10}" for v in VARIANTS) + f" {'PTA':>7} {'BMM':>6}  seconds"
+    print(head)
+    for name in args.sequences.split(","):
+        r = results[name] = run(name)
+        cells = " ".join(f"{r[v][0]:10.4f}" for v in VARIANTS)
+        times = "/".join(f"{r[v][1]:.1f}" for v in VARIANTS)
+        print(f"{name:8} {r['k']:2d} {cells} {PTA[name]:7.4f} {BMM[name]:6.3f}  {times}", flush=True)
+    figure(results, args.out)
+    print(f"figure: {args.out}")
+
+
+if __name__ == "__main__":
+    main()

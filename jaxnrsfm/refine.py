@@ -1,0 +1,186 @@
+"""Low-rank shape recovery given the rotations: the shape step of Dai, Li & He's prior-free
+block matrix method (BMM; "A simple prior-free method for non-rigid structure-from-motion
+factorization", CVPR 2012 / IJCV 2014).
+
+The metric upgrade (:mod:`jaxnrsfm.upgrade`) reads the shapes off the triples ``H`` of the
+affine factorization, ``B = H^-1 S``. That step amplifies every error of ``H`` (Xiao et
+al.'s basis ambiguity) and is what made the upgrade "only adequate" on real data: on the
+Akhter motion-capture sequences its e3D was 0.13--20 for k = 2..8. BMM keeps the rotations
+and recovers the shapes directly from the tracks:
+
+    minimise ||S#||_*   subject to   R_i[:2] S_i = W_i  for every frame i,
+
+where ``S# = [vec S_1; ...; vec S_m]`` (m x 3n) is the shape matrix, whose rank is k in
+Bregler's model, and ``||.||_*`` (the nuclear norm) is its convex surrogate. The in-plane
+part of each shape is fixed by the tracks, ``S_i = R_i[:2]^T W_i + r_i z_i^T`` with ``r_i``
+the viewing direction, so only the depths ``z`` (m x n) are unknown. ADMM on
+``L = S#(z)`` alternates singular-value thresholding of ``L`` with a closed-form depth
+update (``|r_i| = 1``).
+
+Measured (benchmarks/real_sequences.py, shared/data/akhter): with the TRUE rotations this
+step alone gives e3D 0.03--0.05 on pickup, yoga and stretch, so the shape step is not the
+bottleneck; the rotations are. Two rotation sources are offered: the metric upgrade's
+(Gauss--Newton on the rotation constraints) and Dai et al.'s trace-norm relaxation
+(:func:`trace_norm_triple`). Neither is uniformly better on the five sequences.
+
+What did NOT help, and is therefore not here: a joint Gauss--Newton refinement of
+rotations, weights and bases on the reprojection error. Started from the TRUE rotations and
+the rank-k truncation of the true shapes (k = 4, stretch), it lowered the reprojection cost
+from 3.47 to 2.93 while the rotation error grew from 0.036 to 0.147 and e3D from 0.07 to
+0.25: a per-frame rotation error is absorbed by the bases, so the reprojection error does
+not determine the rotations on these sequences. Alternating rotations with the nuclear-norm
+shapes drifted in the same way (the nuclear norm is flat in the rotations: 107.45 at the
+truth, 107.33 at the upgrade's rotations, stretch).
+"""
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .tracks import to_frames
+from .upgrade import Euclidean, _canonical_bases, _canonical_world, nearest_rotations
+
+
+def _svt(X: Float[Array, "m p"], tau: Float[Array, ""]) -> Float[Array, "m p"]:
+    # Singular-value thresholding through the eigendecomposition of the small p x p Gram
+    # matrix (p = 3n): faster than an SVD of the tall m x 3n matrix (ALGORITHMS.md), and
+    # accurate enough in float64 because only singular values above tau survive.
+    ev, V = jnp.linalg.eigh(X.T @ X)
+    s = jnp.sqrt(jnp.maximum(ev, 0.0))
+    keep = s > tau
+    shrink = jnp.where(keep, 1.0 - tau / jnp.where(keep, s, 1.0), 0.0)
+    return X @ ((V * shrink) @ V.T)
+
+
+def nuclear_shapes(
+    tracks: Float[Array, "m 2 n"],
+    rotations: Float[Array, "m 3 3"],
+    *,
+    steps: int = 500,
+    rho: float = 1.0,
+) -> Float[Array, "m 3 n"]:
+    """The shapes of least nuclear norm that project exactly onto the tracks (BMM).
+
+    **Arguments:**
+
+    - `tracks`: centred image points per frame, ``(m, 2, n)``.
+    - `rotations`: ``(m, 3, 3)``; frame ``i`` projects with ``rotations[i, :2]``.
+    - `steps`: ADMM iterations (a fixed count: jit- and vmap-friendly).
+    - `rho`: ADMM penalty, relative to the tracks normalised to unit RMS.
+
+    **Returns:** per-frame shapes ``(m, 3, n)``, centred, with
+    ``rotations[i, :2] @ shapes[i] == tracks[i]`` (centred).
+    """
+    scale = jnp.sqrt(jnp.mean(tracks**2))
+    W = tracks / scale
+    W = W - W.mean(axis=2, keepdims=True)
+    A = jnp.einsum("iab,ian->ibn", rotations[:, :2], W)  # in-plane back-projection
+    r = rotations[:, 2]
+    m, _, n = A.shape
+
+    def shapes_of(z):
+        return (A + r[:, :, None] * z[:, None, :]).reshape(m, 3 * n)
+
+    def step(_, carry):
+        z, Y = carry
+        L = _svt(shapes_of(z) + Y / rho, jnp.asarray(1.0 / rho, W.dtype))
+        # argmin_z |S#(z) - (L - Y/rho)|^2: A is orthogonal to r and |r| = 1.
+        z = jnp.einsum("ia,ian->in", r, (L - Y / rho).reshape(m, 3, n))
+        return z, Y + rho * (shapes_of(z) - L)
+
+    zero = jnp.zeros((m, n), W.dtype)
+    z, _ = jax.lax.fori_loop(0, steps, step, (zero, jnp.zeros((m, 3 * n), W.dtype)))
+    shapes = shapes_of(z).reshape(m, 3, n)
+    # A depth offset along r_i does not change the projection: centre every shape.
+    return scale * (shapes - shapes.mean(axis=2, keepdims=True))
+
+
+def trace_norm_triple(
+    M: Float[Array, "2m 3k"], *, weight: float = 0.1, rho: float = 1.0, steps: int = 1000
+) -> Float[Array, "3k 3"]:
+    """A rotation triple by Dai et al.'s trace-norm relaxation of the rotation constraints.
+
+    With ``Q = g g^T`` (3k x 3k, positive semidefinite, rank 3 at the truth) the rotation
+    constraints ``|a_i|^2 = |b_i|^2``, ``a_i . b_i = 0`` for ``[a_i; b_i] = M_i g`` are
+    linear in ``Q``. Solved, on ``M`` scaled to unit RMS, by ADMM:
+
+        minimise  1/(2m) |A vec Q|^2 + weight tr Q   s.t.  Q >= 0,  mean_i (|a_i|^2 + |b_i|^2)/2 = 1
+
+    (``tr Q`` is the nuclear norm on the PSD cone). The triple is the top-3 factor of ``Q``.
+    """
+    Mn = M / jnp.sqrt(jnp.mean(M**2))
+    m, d = Mn.shape[0] // 2, Mn.shape[1]
+    a, b = Mn[0::2], Mn[1::2]
+    rows = jnp.concatenate(
+        [
+            jnp.einsum("ip,iq->ipq", a, a) - jnp.einsum("ip,iq->ipq", b, b),
+            jnp.einsum("ip,iq->ipq", a, b) + jnp.einsum("ip,iq->ipq", b, a),
+        ]
+    ).reshape(2 * m, d * d)
+    normal = (Mn.T @ Mn / (2 * m)).reshape(-1)
+    K = jnp.linalg.inv(rows.T @ rows / m + rho * jnp.eye(d * d, dtype=M.dtype))
+    Kn = K @ normal
+    eye = jnp.eye(d, dtype=M.dtype).reshape(-1)
+
+    def step(_, carry):
+        Z, U = carry
+        q = K @ (rho * (Z - U) - weight * eye)
+        q = q - (normal @ q - 1.0) / (normal @ Kn) * Kn  # the scale constraint (Lagrange)
+        X = (q + U).reshape(d, d)
+        ev, V = jnp.linalg.eigh((X + X.T) / 2)
+        Z = ((V * jnp.maximum(ev, 0.0)) @ V.T).reshape(-1)
+        return Z, U + q - Z
+
+    zero = jnp.zeros(d * d, M.dtype)
+    Z, _ = jax.lax.fori_loop(0, steps, step, (zero, zero))
+    ev, V = jnp.linalg.eigh(Z.reshape(d, d))
+    return V[:, -3:] * jnp.sqrt(jnp.maximum(ev[-3:], 0.0))
+
+
+def refine_upgrade(
+    eu: Euclidean,
+    M: Float[Array, "2m 3k"],
+    W_hat: Float[Array, "2m n"],
+    k: int,
+    *,
+    trace_norm: float = 0.0,
+    steps: int = 500,
+) -> Euclidean:
+    """Replace the shapes of a metric upgrade by BMM's nuclear-norm shapes (see module).
+
+    **Arguments:**
+
+    - `eu`: the result of :func:`jaxnrsfm.metric_upgrade` on the motion ``M``.
+    - `M`: the (centred) affine motion matrix the upgrade was computed from.
+    - `W_hat`: the fitted tracks of the factorization (complete, missing entries filled).
+    - `k`: number of shape bases of the returned ``weights``/``bases``.
+    - `trace_norm`: 0 keeps ``eu``'s rotations; a positive value takes the rotations from
+      :func:`trace_norm_triple` with that weight instead.
+    - `steps`: ADMM iterations of the shape step.
+
+    **Returns:** a :class:`~jaxnrsfm.upgrade.Euclidean` in the same gauge as ``eu`` (world
+    frame of the first camera, centred shapes). The translations are the centroids of
+    ``W_hat``'s frames, and the shapes reproject exactly onto ``W_hat``:
+    ``rotations[i, :2] @ shapes[i] + translations[i] == W_hat[i]``. (Taken from ``W_hat``,
+    not from the augmented factorization's ones row, which is undefined when the tracks
+    are already centred.) The shapes are NOT exactly rank
+    ``k``: ``weights @ bases`` is their best rank-``k`` approximation (principal shapes),
+    and ``metric_residual`` is that approximation's relative reprojection misfit.
+    """
+    frames = to_frames(W_hat)
+    translations = frames.mean(axis=2)
+    tracks = frames - translations[:, :, None]
+    if trace_norm > 0:
+        # The data dependency on eu orders these LAPACK calls after the upgrade's: two
+        # independent batched LAPACK calls in one jit can deadlock on this CPU backend.
+        Mdep = M + 0.0 * eu.metric_residual
+        R = nearest_rotations(to_frames(Mdep) @ trace_norm_triple(Mdep, weight=trace_norm))
+    else:
+        R = eu.rotations
+    shapes = nuclear_shapes(tracks, R, steps=steps)
+    R, shapes = _canonical_world(R, shapes)
+    weights, bases = _canonical_bases(shapes.reshape(shapes.shape[0], -1), k)
+    bases = bases.reshape(k, 3, -1)
+    model = jnp.einsum("iab,il,lbn->ian", R[:, :2], weights, bases)
+    misfit = jnp.sqrt(jnp.sum((model - tracks) ** 2) / jnp.sum(tracks**2))
+    return Euclidean(R, weights, bases, shapes, translations, misfit)

@@ -1,0 +1,67 @@
+"""Euclidean accuracy on real motion capture (Akhter et al.) and the rule for k.
+
+Thresholds come from measurements (benchmarks/real_sequences.py, float64): on the first
+150 frames of yoga, k = 2 by the rule, e3D is 0.1008 for the metric upgrade, 0.0638 with
+the nuclear-norm shapes given its rotations, 0.0842 with trace-norm rotations.
+"""
+
+import jax
+import numpy as np
+import pytest
+
+import jaxnrsfm as nr
+from jaxnrsfm import datasets
+
+
+def _find_data():
+    try:
+        return datasets.data_dir()
+    except FileNotFoundError:
+        return None
+
+
+needs_data = pytest.mark.skipif(
+    _find_data() is None,
+    reason="real data absent: set $JAXNRSFM_DATA or provide ../shared/data next to the repository",
+)
+
+
+@pytest.fixture(scope="module")
+def yoga150():
+    seq = datasets.load_akhter("yoga")
+    return seq.W[:300], seq.shapes[:150], seq.rotations[:150]
+
+
+@needs_data
+def test_refined_shapes_beat_the_upgrade(yoga150):
+    W, shapes, _ = yoga150
+    k = nr.choose_k(W)
+    assert k == 2
+    plain = float(nr.e3d(nr.reconstruct(W, k=k).shapes, shapes))
+    refined = nr.reconstruct(W, k=k, refine=True)
+    gn = float(nr.e3d(refined.shapes, shapes))
+    tn = float(nr.e3d(nr.reconstruct(W, k=k, refine=True, trace_norm=0.1).shapes, shapes))
+    assert gn < 0.08 and tn < 0.095 and max(gn, tn) < 0.85 * plain
+    # gauge: the refined shapes project onto the fitted tracks with the returned cameras
+    assert bool(refined.status == nr.Status.success)
+    proj = nr.from_frames(np.einsum("iab,ibn->ian", refined.rotations[:, :2], refined.shapes))
+    fitted = refined.W_hat - nr.from_frames(np.asarray(refined.translations)[:, :, None])
+    np.testing.assert_allclose(proj, fitted, atol=1e-8 * float(np.abs(W).max()))
+    # weights @ bases is the best rank-k approximation of the shapes (small misfit)
+    assert float(refined.metric_residual) < 0.05
+
+
+@needs_data
+def test_nuclear_shapes_with_true_rotations(yoga150):
+    W, shapes, R = yoga150
+    Wi = nr.to_frames(W)
+    rec = nr.nuclear_shapes(Wi - Wi.mean(axis=2, keepdims=True), R, steps=300)
+    assert float(nr.e3d(rec, shapes)) < 0.05  # the rotations, not this step, limit accuracy
+
+
+def test_choose_k_on_exact_bregler_data():
+    for k in (1, 3):
+        seq = nr.bregler_sequence(jax.random.key(k), k=k, n_frames=40, n_points=30)
+        assert nr.choose_k(seq.W) == k
+    with pytest.raises(ValueError, match="tolerance"):
+        nr.choose_k(seq.W, tolerance=0.0)
