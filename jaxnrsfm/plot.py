@@ -46,3 +46,64 @@ def plot_shapes(
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_sweep(result: dict, path: str | Path) -> Path:
+    """The paper's Fig. 5 from :func:`jaxnrsfm.sweep.run_sweep`'s result: mean error on
+    the inliers against the noise-free tracks vs the noise level, one panel per outlier
+    ratio, one line per method, with the statistical floor of a rank-(3k+1) fit."""
+    plt = _pyplot()
+    cells = result["cells"]
+    ratios = sorted({c["outliers"] for c in cells})
+    methods = list(dict.fromkeys(c["method"] for c in cells))
+    fig, axes = plt.subplots(1, len(ratios), figsize=(5.2 * len(ratios), 4.2), squeeze=False)
+    for ax, ratio in zip(axes[0], ratios, strict=True):
+        for method in methods:
+            rows = sorted(
+                (c["noise"], np.mean(c["error"])) for c in cells if c["outliers"] == ratio and c["method"] == method
+            )
+            ax.plot(*zip(*rows, strict=True), marker="o", label=method)
+        noise = sorted(float(s) for s in result["floor"])
+        ax.plot(noise, [result["floor"][str(s)] for s in noise], "k--", label="statistical floor")
+        ax.set(xlabel="noise sigma [image units]", ylabel="mean inlier error vs truth", title=f"{ratio:.0%} outliers")
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    trials = result["settings"]["trials"]
+    fig.suptitle(f"Deformable cube, {trials} trials per point (Fig. 5 protocol)")
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_residuals(noise, displacements, residuals, threshold: float, path: str | Path, title: str = "") -> Path:
+    """The paper's Fig. 1: histograms of the injected noise and outlier displacement
+    lengths, and of the reprojection residuals ``|e_ij|`` with the outlier threshold."""
+    plt = _pyplot()
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    a.hist(np.asarray(noise).ravel(), bins=80, color="tab:blue", alpha=0.7, label="noise |n_ij|")
+    a.hist(np.asarray(displacements).ravel(), bins=80, color="tab:red", alpha=0.7, label="outliers |o_ij|")
+    a.set(xlabel="length [image units]", ylabel="entries", title="injected noise and outliers", yscale="log")
+    a.legend()
+    b.hist(np.asarray(residuals).ravel(), bins=120, color="tab:gray")
+    b.axvline(threshold, color="k", ls="--", label=f"threshold {threshold:.2f}")
+    b.set(xlabel="|e_ij| [image units]", ylabel="entries", title="reprojection residuals", yscale="log")
+    b.legend()
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
