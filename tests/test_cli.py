@@ -182,3 +182,21 @@ def test_reconstruct_bad_input_is_one_line(tmp_path, case):
     assert "Traceback" not in result.output and result.stdout == ""
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and fragment in lines[0], result.output
+
+
+def test_sweep_writes_json_and_figures(tmp_path):
+    args = ["sweep", "--trials", "2", "--frames", "20", "--noise", "1", "--noise", "3", "--outliers", "0.1"]
+    result = CliRunner().invoke(app, [*args, "--method", "direct", "--method", "oracle", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    sweep = json.loads((tmp_path / "sweep.json").read_text())
+    assert len(sweep["cells"]) == 4 and all(len(c["error"]) == 2 for c in sweep["cells"])
+    errors = {(c["method"], c["noise"]): np.mean(c["error"]) for c in sweep["cells"]}
+    # The oracle sits near the statistical floor; ignoring the outliers costs far more.
+    for sigma in (1, 3):
+        assert errors["oracle", sigma] < 1.5 * sweep["floor"][str(float(sigma))] < errors["direct", sigma]
+    assert (tmp_path / "fig5.png").stat().st_size > 0 and (tmp_path / "fig1.png").stat().st_size > 0
+
+
+def test_sweep_rejects_bad_options(tmp_path):
+    result = CliRunner().invoke(app, ["sweep", "--method", "magic", "--out", str(tmp_path)])
+    assert result.exit_code == 1 and "unknown method 'magic'" in result.output and "Traceback" not in result.output
