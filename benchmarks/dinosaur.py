@@ -2,7 +2,7 @@
 outliers from the library's injector; mean reprojection error on the inlying
 observations, and outlier precision/recall, for every method.
 
-    python benchmarks/dinosaur.py [--k 2] [--trials 10] [--ratio 0.08]
+    python benchmarks/dinosaur.py [--k K] [--trials 10] [--ratio 0.08]
 
 The paper reports 0.597 (robust), 0.926 (Huynh) and 0.733 (Ke & Kanade) on its own copy
 of the tracks. The error of a trial is the mean of |e_ij| between the fit and the
@@ -25,7 +25,9 @@ from jaxnrsfm.datasets import load_nonrigid_dinosaur  # noqa: E402
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--k", type=int, default=2)
+    parser.add_argument(
+        "--k", type=int, default=None, help="shape bases (default: jaxnrsfm.choose_k on the clean tracks)"
+    )
     parser.add_argument("--trials", type=int, default=10)
     parser.add_argument("--ratio", type=float, default=0.08)
     parser.add_argument("--methods", nargs="+", default=["direct", "huynh", "ke_kanade", "huber", "wang", "oracle"])
@@ -36,6 +38,8 @@ def main():
     keys = jax.vmap(jax.random.fold_in, (None, 0))(jax.random.key(0), jnp.arange(args.trials))
     Wo, outliers = jax.vmap(lambda key: nr.inject_outliers(key, W, visible, args.ratio))(keys)
     inl = visible & ~outliers
+    if args.k is None:
+        args.k = nr.choose_k(tracks.W, tracks.visible)
     direct = nr.reconstruct(W, visible, k=args.k)
     print(
         f"dinosaur {W.shape[0] // 2} frames x {W.shape[1]} points, k={args.k} (rank {3 * args.k + 1}), "

@@ -3,12 +3,14 @@
 There is no batched algorithm here, only a choice of how to map
 :func:`~jaxnrsfm.pipeline.reconstruct_prepared`:
 
-- ``"map"`` (the default): ``jax.lax.map``, one trial after another inside one compiled
-  program. The pipeline's solvers are while loops; under ``vmap`` every trial would run
-  as many steps as the slowest one, and the robust method's step counts vary a lot
-  between trials (``benchmarks/batching.py`` measures the three strategies);
-- ``"vmap"``: all trials in lockstep, which pays on an accelerator with spare width;
-- ``"loop"``: a Python loop over the jit-compiled single trial.
+- ``"loop"`` (the default): a Python loop over the jit-compiled single trial. On a
+  2-core CPU it was the fastest for the robust method (``benchmarks/batching.py``, 8 cube
+  trials of ``wang``: loop 1.17 s/trial, vmap 1.33, map 1.45; under heavy load map and
+  vmap fell much further behind);
+- ``"map"``: ``jax.lax.map``, one trial after another inside one compiled program (what
+  a sweep sharded over devices runs on each device);
+- ``"vmap"``: all trials in lockstep: the solvers are while loops, so every trial runs as
+  many steps as the slowest; it can pay on an accelerator with spare width.
 """
 
 from typing import Literal
@@ -32,7 +34,7 @@ def reconstruct_batch(
     k: int,
     method: str = "wang",
     outliers: ArrayLike | None = None,
-    strategy: Literal["map", "vmap", "loop"] = "map",
+    strategy: Literal["map", "vmap", "loop"] = "loop",
     options: Options | None = None,
 ) -> Reconstruction:
     """:func:`~jaxnrsfm.reconstruct` for ``T`` sequences of equal size: ``W`` is
