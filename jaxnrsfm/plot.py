@@ -19,11 +19,7 @@ def plot_shapes(
 ) -> Path:
     """Write a PNG of reconstructed shapes (aligned to the truth by the one orthogonal
     transform of e3D) beside the true ones, one 3-D panel per frame."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     Y = np.asarray(true_shapes)
     X = np.asarray(align_shapes(shapes, true_shapes))
     Y = Y - Y.mean(axis=2, keepdims=True)
@@ -39,12 +35,16 @@ def plot_shapes(
         ax.set(xlim=(-lim, lim), ylim=(-lim, lim), zlim=(-lim, lim))
         ax.tick_params(labelsize=6)
     fig.axes[0].legend(loc="upper left", fontsize=8)
+    return _save(fig, path, title)
+
+
+def _save(fig, path: str | Path, title: str = "") -> Path:
     if title:
         fig.suptitle(title)
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _pyplot().close(fig)
     return path
 
 
@@ -79,12 +79,7 @@ def plot_sweep(result: dict, path: str | Path) -> Path:
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=8)
     trials = result["settings"]["trials"]
-    fig.suptitle(f"Deformable cube, {trials} trials per point (Fig. 5 protocol)")
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, f"Deformable cube, {trials} trials per point (Fig. 5 protocol)")
 
 
 def plot_residuals(noise, displacements, residuals, threshold: float, path: str | Path, title: str = "") -> Path:
@@ -100,10 +95,4 @@ def plot_residuals(noise, displacements, residuals, threshold: float, path: str 
     b.axvline(threshold, color="k", ls="--", label=f"threshold {threshold:.2f}")
     b.set(xlabel="|e_ij| [image units]", ylabel="entries", title="reprojection residuals", yscale="log")
     b.legend()
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
