@@ -22,6 +22,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .implicit import attach
+from .linalg import truncated_svd
 from .tracks import prepare_tracks, row_mask, to_frames
 
 
@@ -51,10 +53,11 @@ class Factorization(eqx.Module):
 
 
 def svd_factors(W: Float[Array, "2m n"], rank: int) -> tuple[Float[Array, "2m r"], Float[Array, "r n"]]:
-    """Best rank-``rank`` factors of a complete matrix, balanced as ``U sqrt(s)``, ``sqrt(s) V^T``."""
-    U, s, Vt = jnp.linalg.svd(W, full_matrices=False)
-    root = jnp.sqrt(s[:rank])
-    return U[:, :rank] * root, root[:, None] * Vt[:rank]
+    """Best rank-``rank`` factors of a complete matrix, balanced as ``U sqrt(s)``, ``sqrt(s) V^T``
+    (differentiable wherever ``s_rank > s_rank+1``, :func:`jaxnrsfm.linalg.truncated_svd`)."""
+    U, s, Vt = truncated_svd(W, rank)
+    root = jnp.sqrt(s)
+    return U * root, root[:, None] * Vt
 
 
 def _solve_batched(G: Float[Array, "b r r"], rhs: Float[Array, "b r"]) -> Float[Array, "b r"]:
@@ -150,6 +153,29 @@ def initial_fit(
     return masked_als(W, weights, M0, max_steps=max_steps, rtol=rtol)
 
 
+def least_squares_fit(
+    W: Float[Array, "2m n"],
+    weights: Float[Array, "m n"],
+    rank: int,
+    *,
+    complete: bool,
+    max_steps: int = 500,
+    rtol: float = 1e-10,
+) -> tuple[Float[Array, "2m r"], Float[Array, "r n"], Int[Array, ""], Bool[Array, ""]]:
+    """:func:`initial_fit`, differentiable with respect to ``W`` and ``weights``: the
+    truncated SVD directly, masked ALS through the implicit function theorem
+    (:func:`jaxnrsfm.implicit.attach`; the factors come back balanced)."""
+    if complete:
+        M, S = svd_factors(W, rank)
+        return M, S, jnp.array(0), jnp.array(True)
+    constant = jax.lax.stop_gradient
+    M, S, steps, converged = initial_fit(
+        constant(W), constant(weights), rank, complete=False, max_steps=max_steps, rtol=rtol
+    )
+    _, M, S = attach(W, weights, M @ S, rank)
+    return M, S, steps, converged
+
+
 def finish(
     W: Float[Array, "2m n"],
     inliers: Bool[Array, "m n"],
@@ -183,7 +209,7 @@ def factorize_prepared(
     """
     t = centroids(W, visible) if register else jnp.zeros((W.shape[0] // 2, 2), W.dtype)
     Wc = jnp.where(row_mask(visible), W - t.reshape(-1)[:, None], 0.0)
-    M, S, steps, converged = initial_fit(Wc, visible, rank, complete=complete, max_steps=max_steps, rtol=rtol)
+    M, S, steps, converged = least_squares_fit(Wc, visible, rank, complete=complete, max_steps=max_steps, rtol=rtol)
     return finish(W, visible, M, S, t, steps, converged)
 
 

@@ -12,9 +12,16 @@ from jaxtyping import Array, Bool, Float
 from .tracks import to_frames
 
 
+def length(x: Float[Array, "..."], axis: int) -> Float[Array, "..."]:
+    """Euclidean length along ``axis``, with gradient 0 (not NaN) at a zero vector: a
+    noise-free fit has exactly zero residuals (double ``where``)."""
+    sq = jnp.sum(x**2, axis=axis)
+    return jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
+
+
 def entry_errors(W: Float[Array, "2m n"], W_hat: Float[Array, "2m n"]) -> Float[Array, "m n"]:
     """``|e_ij|``, the length of each entry's 2-vector residual."""
-    return jnp.linalg.norm(to_frames(W) - to_frames(W_hat), axis=1)
+    return length(to_frames(W) - to_frames(W_hat), axis=1)
 
 
 def mean_reprojection_error(
@@ -62,7 +69,7 @@ def e3d(shapes: Float[Array, "m 3 n"], true_shapes: Float[Array, "m 3 n"]) -> Fl
     """
     scale = jnp.mean(jnp.std(true_shapes, axis=2))
     X = align_shapes(shapes / scale, true_shapes / scale)
-    return jnp.mean(jnp.linalg.norm(X - _normalize(true_shapes, scale), axis=1))
+    return jnp.mean(length(X - _normalize(true_shapes, scale), axis=1))
 
 
 def outlier_precision_recall(

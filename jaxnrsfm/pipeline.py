@@ -235,7 +235,7 @@ def reconstruct(
         raise ValueError(f"k (the number of shape bases) must be a positive integer; got {k!r}")
     if (method == "oracle") != (outliers is not None):
         raise ValueError("method='oracle' needs the true `outliers` mask, and only it takes one")
-    if not delta > 0:
+    if not isinstance(delta, jax.core.Tracer) and not delta > 0:
         raise ValueError(f"the Huber parameter delta must be > 0; got {delta}")
     if not (threshold is None or threshold > 0) or passes < 1 or iterations < 1:
         raise ValueError(f"threshold must be > 0 and passes, iterations >= 1; got {threshold}, {passes}, {iterations}")

@@ -35,7 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .factorize import Factorization, finish, initial_fit, masked_als, svd_factors
+from .factorize import Factorization, finish, initial_fit, least_squares_fit, masked_als, svd_factors
+from .implicit import attach
 from .l1 import ke_kanade as ke_kanade_l1
 from .metrics import entry_errors
 from .objective import L1_DELTA, robust_factorize
@@ -179,6 +180,10 @@ def wang(
 
     Steps 6--7 (metric upgrade, per-frame structure) follow in the pipeline.
 
+    Gradients: the passes run on ``stop_gradient(W)``; their decisions -- the inlier set
+    and step 5's weights -- are constants, and the final weighted fit is re-attached to
+    ``W`` by :func:`jaxnrsfm.implicit.attach`.
+
     Two departures from a literal reading, both measured on the paper's cube, both
     needed to match the oracle there:
 
@@ -194,6 +199,7 @@ def wang(
       misfits genuine deformation; hard rejection then dropped a frame's whole moving
       part, and nothing brought it back.
     """
+    W_in, W = W, jax.lax.stop_gradient(W)  # the passes' decisions are constants to the gradient
     ranks = rank_schedule(rank, passes)
     factors = (threshold or 4.0) * np.geomspace(SCHEDULE, 1.0, len(ranks))
     M, S, steps, converged = initial_fit(W, visible, ranks[0], complete=complete, max_steps=max_steps, rtol=rtol)
@@ -217,7 +223,8 @@ def wang(
         weights = jnp.where(inliers, jnp.clip(ratio, 0.1, 10.0), 0.0)
     weights = jnp.where(visible & ~inliers, ANCHOR, weights)
     M, S, steps, converged = masked_als(W, weights, M, max_steps=max_steps, rtol=rtol)
-    return finish(W, inliers, M, S, _zero_translations(W), steps, converged)
+    _, M, S = attach(W_in, weights, M @ S, rank)
+    return finish(W_in, inliers, M, S, _zero_translations(W), steps, converged)
 
 
 def huynh(
@@ -303,10 +310,14 @@ def huber(
     Gaussian noise), or the L1 loss when ``delta`` is ``None``. The scale is
     :func:`classify`'s on the least-squares residuals; the reported outliers are chosen by
     :func:`classify` too."""
-    M, S, _, _ = initial_fit(W, visible, rank, complete=complete, max_steps=max_steps, rtol=rtol)
+    M, S, _, _ = least_squares_fit(W, visible, rank, complete=complete, max_steps=max_steps, rtol=rtol)
     _, sigma, _ = classify(W, M @ S, visible, threshold)
     d = (L1_DELTA if delta is None else delta) * sigma
-    M, S, steps, converged = robust_factorize(W, visible, M, S, d, max_steps=max_steps, rtol=max(rtol, 1e-8))
+    constant = jax.lax.stop_gradient
+    M, S, steps, converged = robust_factorize(
+        constant(W), visible, constant(M), constant(S), constant(d), max_steps=max_steps, rtol=max(rtol, 1e-8)
+    )
+    _, M, S = attach(W, visible, M @ S, rank, d)
     inliers, _, _ = classify(W, M @ S, visible, threshold)
     return finish(W, inliers, M, S, _zero_translations(W), steps, converged)
 
@@ -323,5 +334,5 @@ def oracle(
     """The least-squares factorization told the true ``outliers``: the best any outlier
     rejection can do, the yardstick of the paper's comparison."""
     inliers = visible & ~outliers
-    M, S, steps, converged = initial_fit(W, inliers, rank, complete=False, max_steps=max_steps, rtol=rtol)
+    M, S, steps, converged = least_squares_fit(W, inliers, rank, complete=False, max_steps=max_steps, rtol=rtol)
     return finish(W, inliers, M, S, _zero_translations(W), steps, converged)

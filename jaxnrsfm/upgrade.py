@@ -40,6 +40,7 @@ import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Float
 
+from .linalg import lowest_eigenvectors, polar_rows, truncated_svd
 from .tracks import to_frames
 
 
@@ -72,7 +73,7 @@ def split_translation(
     n = S.shape[1]
     ones = jnp.ones(n, S.dtype)
     v = jnp.linalg.lstsq(S.T, ones)[0]
-    U = jnp.linalg.svd(S - S.mean(axis=1, keepdims=True), full_matrices=False)[0][:, :-1]
+    U = truncated_svd(S - S.mean(axis=1, keepdims=True), S.shape[0] - 1)[0]
     u0 = U.T @ S.mean(axis=1)
     T = jnp.concatenate([U.T - u0[:, None] * v[None, :], v[None, :]], axis=0)
     S_t = T @ S
@@ -113,10 +114,14 @@ def rotation_triple(
     # then wander along the manifold at round-off level and never meet the termination
     # test, which is harmless: every point of it is a solution. So the step budget,
     # not the tolerance, ends those solves, and throw=False keeps that from erroring.
-    solver = optx.GaussNewton(rtol=eps**0.6, atol=eps**0.75, linear_solver=lx.AutoLinearSolver(well_posed=False))
+    rank_deficient = lx.AutoLinearSolver(well_posed=False)
+    solver = optx.GaussNewton(rtol=eps**0.6, atol=eps**0.75, linear_solver=rank_deficient)
+    # The implicit derivative meets the same manifold: the minimum-norm tangent is one of
+    # many, all giving the same rotations and shapes.
+    adjoint = optx.ImplicitAdjoint(linear_solver=rank_deficient)
 
     def solve(g):
-        sol = optx.least_squares(_rotation_residuals, solver, g, Mn, max_steps=max_steps, throw=False)
+        sol = optx.least_squares(_rotation_residuals, solver, g, Mn, max_steps=max_steps, throw=False, adjoint=adjoint)
         return sol.value, jnp.sum(_rotation_residuals(sol.value, Mn) ** 2)
 
     gs, costs = jax.vmap(solve)(g0)
@@ -133,8 +138,7 @@ def _rotations_and_trust(Mi: Float[Array, "m 2 3k"], g: Float[Array, "3k 3"]):
 
 def nearest_rotations(A: Float[Array, "m 2 3"]) -> Float[Array, "m 3 3"]:
     """Rotations whose first two rows are the orthonormal pair nearest to each ``A_i``."""
-    U, _, Vt = jnp.linalg.svd(A, full_matrices=False)
-    R2 = U @ Vt
+    R2 = polar_rows(A)
     return jnp.concatenate([R2, jnp.cross(R2[:, 0], R2[:, 1])[:, None]], axis=1)
 
 
@@ -152,10 +156,10 @@ def triples_given_rotations(
     X = jnp.einsum("iab,iac->ibc", Mi, R[:, :2]).reshape(Mi.shape[0], -1)  # vec(M_i^T R_i)
     gram = jnp.einsum("i,iab,iac->bc", trust, Mi, Mi)
     G = jnp.kron(gram, jnp.eye(3, dtype=M.dtype)) - 0.5 * (trust[:, None] * X).T @ X
-    _, vecs = jnp.linalg.eigh(G)
-    h = vecs[:, :k].T.reshape(k, -1, 3)  # (k, 3k, 3)
+    vecs = lowest_eigenvectors(G, k)
+    h = vecs.T.reshape(k, -1, 3)  # (k, 3k, 3)
     H = jnp.concatenate(list(h), axis=1)
-    w = 0.5 * X @ vecs[:, :k]
+    w = 0.5 * X @ vecs
     return H, w
 
 
@@ -187,7 +191,7 @@ def metric_upgrade(
     # from a well-scaled triple. (Polishing it again on the rotation constraints gains
     # nothing with noise and loses digits without: those constraints are ill-conditioned
     # along the directions that Xiao et al.'s basis constraints were invented to fix.)
-    c = jnp.linalg.svd(w, full_matrices=False)[2][0]
+    c = truncated_svd(w, 1)[2][0]
     R, trust = _rotations_and_trust(Mi, jnp.einsum("blc,l->bc", H.reshape(-1, k, 3), c))
     H, w = triples_given_rotations(M, R, k, trust)
     B = jnp.linalg.solve(H, S).reshape(k, 3, -1)
@@ -197,7 +201,7 @@ def metric_upgrade(
     metric_residual = jnp.sqrt(jnp.sum((Mi @ H - model) ** 2) / jnp.sum((Mi @ H) ** 2))
 
     flat = shapes.reshape(shapes.shape[0], -1)
-    principal = jnp.linalg.svd(flat, full_matrices=False)[2][0]
+    principal = truncated_svd(flat, 1)[2][0]
     sign = jnp.where(flat @ principal < 0, -1.0, 1.0).astype(M.dtype)
     shapes = sign[:, None, None] * shapes
     R = R * jnp.stack([sign, sign, jnp.ones_like(sign)], axis=1)[:, :, None]
@@ -221,8 +225,8 @@ def _canonical_world(R: Float[Array, "m 3 3"], shapes: Float[Array, "m 3 n"]):
 def _canonical_bases(flat: Float[Array, "m 3n"], k: int) -> tuple[Float[Array, "m k"], Float[Array, "k 3n"]]:
     # Principal shapes in order of energy; the sign makes each mean weight non-negative.
     m = flat.shape[0]
-    U, s, Vt = jnp.linalg.svd(flat, full_matrices=False)
-    sign = jnp.where(U[:, :k].sum(axis=0) < 0, -1.0, 1.0).astype(flat.dtype)
-    weights = U[:, :k] * sign * jnp.sqrt(m)
-    bases = (sign * s[:k])[:, None] * Vt[:k] / jnp.sqrt(m)
+    U, s, Vt = truncated_svd(flat, k)
+    sign = jnp.where(U.sum(axis=0) < 0, -1.0, 1.0).astype(flat.dtype)
+    weights = U * sign * jnp.sqrt(m)
+    bases = (sign * s)[:, None] * Vt / jnp.sqrt(m)
     return weights, bases

@@ -1,0 +1,87 @@
+"""Decompositions whose derivatives need only a spectral gap.
+
+JAX differentiates ``svd`` and ``eigh`` through every pair of singular values or
+eigenvalues: ``1 / (s_i^2 - s_j^2)``. A noise-free tracking matrix has ``min(2m, n) - r``
+(numerically) zero singular values, so those pairs are ``inf`` or huge and the gradient
+turns NaN, although no output that the pipeline uses depends on how the null space is
+spanned. The versions here return only the leading (or trailing) part and differentiate
+it through the pairs that cross the gap between the kept and the discarded part: the
+derivative is finite whenever the kept part is separated from the rest.
+"""
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(1,))
+def truncated_svd(
+    A: Float[Array, "p q"], rank: int
+) -> tuple[Float[Array, "p r"], Float[Array, " r"], Float[Array, "r q"]]:
+    """The leading ``rank`` singular triplets ``U_r, s_r, Vt_r`` of ``A``.
+
+    Differentiable (forward and reverse mode) wherever ``s_1 > ... > s_r > s_{r+1}``:
+    the discarded singular values may be zero and repeated.
+    """
+    U, s, Vt = jnp.linalg.svd(A, full_matrices=False)
+    return U[:, :rank], s[:rank], Vt[:rank]
+
+
+@truncated_svd.defjvp
+def _truncated_svd_jvp(rank, primals, tangents):
+    (A,), (dA,) = primals, tangents
+    U, s, Vt = jnp.linalg.svd(A, full_matrices=False)
+    V = Vt.T
+    Ur, sr, Vr = U[:, :rank], s[:rank], V[:, :rank]
+    # First-order perturbation of triplet i < rank: along u_j (resp. v_j) for every other
+    # j, (s_i C_ji + s_j C_ij) / (s_i^2 - s_j^2) with C = U^T dA V; beyond the thin
+    # bases (s_j = 0), the projection of dA v_i / s_i (resp. dA^T u_i / s_i). Pairs
+    # with both j, i >= rank never occur.
+    C = U.T @ dA @ V
+    C_ji, C_ij = C[:, :rank], C[:rank, :].T
+    same = jnp.arange(s.shape[0])[:, None] == jnp.arange(rank)[None, :]
+    gap = jnp.where(same, 1.0, sr[None, :] ** 2 - s[:, None] ** 2)
+    X = jnp.where(same, 0.0, (sr[None, :] * C_ji + s[:, None] * C_ij) / gap)
+    Y = jnp.where(same, 0.0, (sr[None, :] * C_ij + s[:, None] * C_ji) / gap)
+    dU = U @ X + (dA @ Vr - U @ C_ji) / sr
+    dV = V @ Y + (dA.T @ Ur - V @ C_ij) / sr
+    return (Ur, sr, Vr.T), (dU, jnp.diagonal(C)[:rank], dV.T)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(1,))
+def lowest_eigenvectors(G: Float[Array, "d d"], k: int) -> Float[Array, "d k"]:
+    """Eigenvectors of the ``k`` smallest eigenvalues of the symmetric ``G``.
+
+    Differentiable wherever ``lambda_k < lambda_{k+1}``. The ``k`` eigenvalues may
+    coincide: the derivative then leaves the basis of their subspace unturned, which is
+    exact for every output that depends on the subspace alone.
+    """
+    return jnp.linalg.eigh(G)[1][:, :k]
+
+
+@lowest_eigenvectors.defjvp
+def _lowest_eigenvectors_jvp(k, primals, tangents):
+    (G,), (dG,) = primals, tangents
+    lam, V = jnp.linalg.eigh(G)
+    C = V.T @ dG @ V
+    inside = jnp.arange(lam.shape[0]) < k
+    gap = jnp.where(inside[:, None], 1.0, lam[None, :k] - lam[:, None])
+    X = jnp.where(inside[:, None], 0.0, C[:, :k] / gap)
+    return V[:, :k], V @ X
+
+
+def polar_rows(A: Float[Array, "... 2 3"]) -> Float[Array, "... 2 3"]:
+    """The orthonormal pair of rows nearest to each ``2 x 3`` block: ``(A A^T)^(-1/2) A``.
+
+    Written with the closed-form square root of a 2x2 SPD matrix,
+    ``sqrt(P) = (P + sqrt(det P) I) / sqrt(tr P + 2 sqrt(det P))``, because the SVD's
+    derivative is infinite where the two singular values coincide -- which is exactly
+    the case of interest, a scaled rotation.
+    """
+    P = A @ jnp.swapaxes(A, -1, -2)
+    root_det = jnp.sqrt(jnp.linalg.det(P))
+    norm = jnp.sqrt(jnp.trace(P, axis1=-2, axis2=-1) + 2 * root_det)
+    sqrt_P = (P + root_det[..., None, None] * jnp.eye(2, dtype=A.dtype)) / norm[..., None, None]
+    return jnp.linalg.solve(sqrt_P, A)
