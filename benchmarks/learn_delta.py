@@ -1,6 +1,6 @@
 """Learn the Huber parameter delta by gradient descent through the whole pipeline.
 
-    python benchmarks/learn_delta.py [--train 8] [--test 32] [--steps 15] [--frames 40]
+    python benchmarks/learn_delta.py [--train 4] [--test 16] [--steps 10] [--frames 100]
 
 The loss is the mean, over vmapped synthetic trials (the deformable cube, sigma = 2,
 20% outliers), of the RMS error of the Huber fit against the noise-free tracks on the
@@ -43,10 +43,10 @@ def mean_error(log_delta, seqs):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--train", type=int, default=8)
-    parser.add_argument("--test", type=int, default=32)
-    parser.add_argument("--steps", type=int, default=15)
-    parser.add_argument("--frames", type=int, default=40)
+    parser.add_argument("--train", type=int, default=4)
+    parser.add_argument("--test", type=int, default=16)
+    parser.add_argument("--steps", type=int, default=10)
+    parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--noise", type=float, default=2.0)
     parser.add_argument("--outliers", type=float, default=0.2)
     args = parser.parse_args()
@@ -56,7 +56,7 @@ def main():
     print(f"{args.train} training trials, {args.test} held-out trials (different seed)")
 
     value_and_grad = jax.jit(jax.value_and_grad(mean_error))
-    optimizer = optax.adam(0.1)
+    optimizer = optax.adam(0.2)
     log_delta = jnp.log(jnp.asarray(DEFAULT))
     state = optimizer.init(log_delta)
     t0 = time.perf_counter()
