@@ -26,16 +26,20 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 import lineax as lx
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
 from .linalg import truncated_svd
 from .tracks import row_mask
 
-GMRES = lx.GMRES(rtol=1e-8, atol=1e-12, max_steps=2000, restart=50, stagnation_iters=100)
-"""The linear solver of the Newton polish and of the tangent (and cotangent) solves. A
-tighter ``rtol`` stagnates at round-off on some cotangents; 1e-8 leaves the gradients
-correct to about 1e-7 relative (measured against finite differences)."""
+
+def _gmres(dtype) -> lx.GMRES:
+    # The linear solver of the Newton polish and of the tangent (and cotangent) solves.
+    # A tighter rtol than sqrt(eps) stagnates at round-off on some cotangents; in float64
+    # it leaves the gradients right to about 1e-7 (against finite differences).
+    rtol = float(np.sqrt(np.finfo(dtype).eps))
+    return lx.GMRES(rtol=rtol, atol=rtol * 1e-4, max_steps=2000, restart=50, stagnation_iters=100)
 
 
 def lowrank(
@@ -96,7 +100,8 @@ def attach(
     constant = jax.lax.stop_gradient
     stationarity = partial(_stationarity, rank=rank)
     eps = jnp.finfo(W.dtype).eps
-    newton = optx.Newton(rtol=eps, atol=eps, linear_solver=GMRES)
+    gmres = _gmres(W.dtype)
+    newton = optx.Newton(rtol=eps, atol=eps, linear_solver=gmres)
     Z = constant(_em_from_fit(L, args))  # the fixed point, if L is stationary
     if steps:
         polished = optx.root_find(stationarity, newton, Z, constant(args), max_steps=steps, throw=False).value
@@ -105,6 +110,6 @@ def attach(
         Z = jnp.where(size(polished) < size(Z), polished, Z)
     # No steps: only the implicit function theorem's tangents are attached at Z.
     sol = optx.root_find(
-        stationarity, newton, Z, args, max_steps=0, throw=False, adjoint=optx.ImplicitAdjoint(linear_solver=GMRES)
+        stationarity, newton, Z, args, max_steps=0, throw=False, adjoint=optx.ImplicitAdjoint(linear_solver=gmres)
     )
     return lowrank(sol.value, rank)
