@@ -140,3 +140,11 @@ def test_vmap_of_grad_equals_loop_of_grad():
     np.testing.assert_allclose(batched[0], jnp.stack([g[0] for g in looped]), rtol=1e-8, atol=1e-12)
     np.testing.assert_allclose(batched[1], jnp.stack([g[1] for g in looped]), rtol=1e-8, atol=1e-10)
     assert bool(jnp.all(batched[0] != 0))
+
+
+def test_float32_gradients_are_finite():
+    seq, W, truth = _cube(1.0, missing=0.2)
+    W32 = W.astype(jnp.float32)
+    grad = jax.jit(jax.grad(lambda W: nr.e3d(nr.reconstruct(W, seq.visible, k=K).shapes, truth)))(W32)
+    assert grad.dtype == jnp.float32
+    assert bool(jnp.all(jnp.isfinite(grad))) and bool(jnp.any(grad != 0))
