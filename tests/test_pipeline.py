@@ -98,8 +98,8 @@ def test_augmented_beats_registered_with_missing_data():
 
 
 def test_vmap_equals_loop():
-    """100 small trials with missing data: vmap of the pipeline == a Python loop of it."""
-    keys = jax.random.split(jax.random.key(5), 100)
+    """25 small trials with missing data: vmap of the pipeline == a Python loop of it."""
+    keys = jax.random.split(jax.random.key(5), 25)
 
     def make(key):
         return nr.bregler_sequence(key, k=2, n_frames=20, n_points=20, noise=1.0, missing_ratio=0.1)
@@ -107,8 +107,8 @@ def test_vmap_equals_loop():
     seqs = jax.vmap(make)(keys)
     batched = jax.vmap(lambda W, v: nr.reconstruct(W, v, k=2))(seqs.W, seqs.visible)
     ok = batched.status == nr.Status.success
-    assert int(jnp.sum(ok)) >= 95
-    for t in range(100):
+    assert int(jnp.sum(ok)) >= 23
+    for t in range(25):
         one = nr.reconstruct(seqs.W[t], seqs.visible[t], k=2)
         assert bool(one.status == nr.Status.success) == bool(ok[t])
         if not ok[t]:
