@@ -38,7 +38,8 @@ class Options(eqx.Module):
     iterations: int = 10
     """Pseudo-observation iterations (``huynh``)."""
     delta: float = 1.345
-    """Huber loss parameter in robust scales (``huber``)."""
+    """Huber loss parameter in robust scales (``huber``); an array here is traced, and
+    differentiable."""
     max_steps: int = 500
     """Step budget of the missing-data solver."""
     rtol: float = 1e-10

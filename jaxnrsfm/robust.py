@@ -300,7 +300,7 @@ def huber(
     *,
     rank: int,
     complete: bool,
-    delta: float | None = 1.345,
+    delta: float | Float[Array, ""] | None = 1.345,
     threshold: float | None = None,
     max_steps: int = 500,
     rtol: float = 1e-10,
@@ -309,7 +309,9 @@ def huber(
     Huber loss with ``delta`` robust scales (the classic 1.345, 95% efficient under
     Gaussian noise), or the L1 loss when ``delta`` is ``None``. The scale is
     :func:`classify`'s on the least-squares residuals; the reported outliers are chosen by
-    :func:`classify` too."""
+    :func:`classify` too. Gradients: LM runs on constants; the least-squares fit (hence
+    the scale) and the Huber solution are re-attached to ``W`` and ``delta`` (which may be
+    traced) by :func:`jaxnrsfm.implicit.attach`."""
     M, S, _, _ = least_squares_fit(W, visible, rank, complete=complete, max_steps=max_steps, rtol=rtol)
     _, sigma, _ = classify(W, M @ S, visible, threshold)
     d = (L1_DELTA if delta is None else delta) * sigma
