@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .implicit import attach
-from .linalg import truncated_svd
+from .linalg import svd_factors
 from .tracks import prepare_tracks, row_mask, to_frames
 
 
@@ -50,14 +50,6 @@ class Factorization(eqx.Module):
     """Alternating least-squares sweeps taken (0 for the SVD)."""
     converged: Bool[Array, ""]
     """False if the iterative solver hit ``max_steps`` before its tolerance."""
-
-
-def svd_factors(W: Float[Array, "2m n"], rank: int) -> tuple[Float[Array, "2m r"], Float[Array, "r n"]]:
-    """Best rank-``rank`` factors of a complete matrix, balanced as ``U sqrt(s)``, ``sqrt(s) V^T``
-    (differentiable wherever ``s_rank > s_rank+1``, :func:`jaxnrsfm.linalg.truncated_svd`)."""
-    U, s, Vt = truncated_svd(W, rank)
-    root = jnp.sqrt(s)
-    return U * root, root[:, None] * Vt
 
 
 def _solve_batched(G: Float[Array, "b r r"], rhs: Float[Array, "b r"]) -> Float[Array, "b r"]:
@@ -166,8 +158,7 @@ def least_squares_fit(
     truncated SVD directly, masked ALS through the implicit function theorem
     (:func:`jaxnrsfm.implicit.attach`; the factors come back balanced)."""
     if complete:
-        M, S = svd_factors(W, rank)
-        return M, S, jnp.array(0), jnp.array(True)
+        return initial_fit(W, weights, rank, complete=True)
     constant = jax.lax.stop_gradient
     M, S, steps, converged = initial_fit(
         constant(W), constant(weights), rank, complete=False, max_steps=max_steps, rtol=rtol

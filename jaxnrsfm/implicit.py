@@ -30,7 +30,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from .linalg import truncated_svd
+from .linalg import svd_factors
 from .tracks import row_mask
 
 
@@ -45,11 +45,9 @@ def _gmres(dtype) -> lx.GMRES:
 def lowrank(
     Z: Float[Array, "2m n"], rank: int
 ) -> tuple[Float[Array, "2m n"], Float[Array, "2m r"], Float[Array, "r n"]]:
-    """The best rank-``rank`` fit ``L = M S`` of a complete matrix, with balanced factors
-    ``M = U sqrt(s)``, ``S = sqrt(s) V^T`` (differentiable across a spectral gap)."""
-    U, s, Vt = truncated_svd(Z, rank)
-    root = jnp.sqrt(s)
-    M, S = U * root, root[:, None] * Vt
+    """The best rank-``rank`` fit ``L = M S`` of a complete matrix, with the balanced
+    factors of :func:`jaxnrsfm.linalg.svd_factors`."""
+    M, S = svd_factors(Z, rank)
     return M @ S, M, S
 
 
@@ -97,16 +95,16 @@ def attach(
     # L depends on the weights only up to scale: a constant normaliser is exact.
     weights = weights / jax.lax.stop_gradient(jnp.maximum(jnp.max(weights), jnp.finfo(W.dtype).tiny))
     args = (W, weights, jnp.asarray(delta, W.dtype))
-    constant = jax.lax.stop_gradient
+    fixed = jax.lax.stop_gradient(args)
     stationarity = partial(_stationarity, rank=rank)
     eps = jnp.finfo(W.dtype).eps
     gmres = _gmres(W.dtype)
     newton = optx.Newton(rtol=eps, atol=eps, linear_solver=gmres)
-    Z = constant(_em_from_fit(L, args))  # the fixed point, if L is stationary
+    Z = jax.lax.stop_gradient(_em_from_fit(L, fixed))  # the fixed point, if L is stationary
     if steps:
-        polished = optx.root_find(stationarity, newton, Z, constant(args), max_steps=steps, throw=False).value
+        polished = optx.root_find(stationarity, newton, Z, fixed, max_steps=steps, throw=False).value
         # A Newton step whose linear solve failed could land anywhere: keep it only if it helped.
-        size = lambda Z: jnp.max(jnp.abs(stationarity(Z, constant(args))))  # noqa: E731
+        size = lambda Z: jnp.max(jnp.abs(stationarity(Z, fixed)))  # noqa: E731
         Z = jnp.where(size(polished) < size(Z), polished, Z)
     # No steps: only the implicit function theorem's tangents are attached at Z.
     sol = optx.root_find(

@@ -50,6 +50,14 @@ def _truncated_svd_jvp(rank, primals, tangents):
     return (Ur, sr, Vr.T), (dU, jnp.diagonal(C)[:rank], dV.T)
 
 
+def svd_factors(A: Float[Array, "p q"], rank: int) -> tuple[Float[Array, "p r"], Float[Array, "r q"]]:
+    """Best rank-``rank`` factors of a complete matrix, balanced as ``U sqrt(s)``, ``sqrt(s) V^T``
+    (differentiable wherever ``s_rank > s_rank+1``, :func:`truncated_svd`)."""
+    U, s, Vt = truncated_svd(A, rank)
+    root = jnp.sqrt(s)
+    return U * root, root[:, None] * Vt
+
+
 @partial(jax.custom_jvp, nondiff_argnums=(1,))
 def lowest_eigenvectors(G: Float[Array, "d d"], k: int) -> Float[Array, "d k"]:
     """Eigenvectors of the ``k`` smallest eigenvalues of the symmetric ``G``.

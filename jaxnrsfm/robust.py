@@ -35,9 +35,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .factorize import Factorization, finish, initial_fit, least_squares_fit, masked_als, svd_factors
+from .factorize import Factorization, finish, initial_fit, least_squares_fit, masked_als
 from .implicit import attach
 from .l1 import ke_kanade as ke_kanade_l1
+from .linalg import svd_factors
 from .metrics import entry_errors
 from .objective import L1_DELTA, robust_factorize
 from .tracks import row_mask
