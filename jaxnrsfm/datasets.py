@@ -54,27 +54,29 @@ class Tracks:
 def data_dir(path: str | os.PathLike | None = None) -> Path:
     """The data directory: ``path`` if given, else the ``JAXNRSFM_DATA`` environment
     variable, else ``../shared/data`` relative to the repository root (the parent of the
-    package directory) if it exists.
+    package directory, for an editable install) or to the working directory, the first
+    that exists.
 
     **Raises:** ``FileNotFoundError`` naming what was tried when the directory is missing.
     """
-    default = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
     if path is not None:
         if not Path(path).is_dir():
             raise FileNotFoundError(f"data directory {path} does not exist")
         return Path(path)
+    defaults = [Path(__file__).resolve().parents[2] / "shared" / "data", Path.cwd().parent / "shared" / "data"]
     env = os.environ.get(DATA_ENV)
     if env:
         # An explicit choice is never silently replaced by the default.
         if not Path(env).is_dir():
-            raise FileNotFoundError(f"${DATA_ENV}={env} is not a directory (unset it to use the default {default})")
+            raise FileNotFoundError(f"${DATA_ENV}={env} is not a directory (unset it to use ../shared/data)")
         return Path(env)
-    if not default.is_dir():
-        raise FileNotFoundError(
-            f"no data directory: ${DATA_ENV} is not set and the default {default} "
-            "(../shared/data from the repository root) does not exist"
-        )
-    return default
+    for default in defaults:
+        if default.is_dir():
+            return default
+    raise FileNotFoundError(
+        f"no data directory: ${DATA_ENV} is not set and neither {defaults[0]} (../shared/data from the "
+        f"repository root) nor {defaults[1]} (from the working directory) exists"
+    )
 
 
 def _resolve(name: str | os.PathLike, subdir: str, root: str | os.PathLike | None) -> Path:

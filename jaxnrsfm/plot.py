@@ -16,9 +16,11 @@ def plot_shapes(
     *,
     frames: Sequence[int] = (0, 33, 66, 99),
     title: str = "",
+    edges=None,
 ) -> Path:
     """Write a PNG of reconstructed shapes (aligned to the truth by the one orthogonal
-    transform of e3D) beside the true ones, one 3-D panel per frame."""
+    transform of e3D) beside the true ones, one 3-D panel per frame; ``edges`` (E, 2)
+    point-index pairs, such as a skeleton's bones, are drawn as segments."""
     plt = _pyplot()
     Y = np.asarray(true_shapes)
     X = np.asarray(align_shapes(shapes, true_shapes))
@@ -29,6 +31,9 @@ def plot_shapes(
         ax = fig.add_subplot(1, len(frames), col + 1, projection="3d")
         ax.scatter(*Y[f], s=14, facecolors="none", edgecolors="tab:blue", label="truth")
         ax.scatter(*X[f], s=10, marker="x", color="tab:red", label="reconstruction")
+        for a, b in [] if edges is None else np.asarray(edges):
+            ax.plot(*Y[f][:, [a, b]], color="tab:blue", lw=1)
+            ax.plot(*X[f][:, [a, b]], color="tab:red", lw=1)
         ax.set_title(f"frame {f}")
         ax.set_box_aspect((1, 1, 1))
         lim = np.abs(Y[f]).max() * 1.1

@@ -19,6 +19,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .metrics import outlier_precision_recall, rms_error, statistical_floor
@@ -60,18 +61,44 @@ def _evaluate(seq, *, k, method, options):
 
 
 @eqx.filter_jit
-def _run_setting(keys, noise, outlier_ratio, *, frames, missing, k, method, options, mesh):
-    # keys: (devices, trials per device). The device axis is sharded over the mesh and
-    # vmapped; each device maps its own trials one after another (lax.map: the solvers'
-    # step counts vary between trials, and vmap would run them in lockstep).
-    keys = jax.lax.with_sharding_constraint(keys, NamedSharding(mesh, PartitionSpec("trials")))
+def _run_trials(keys, noise, outlier_ratio, *, frames, missing, k, method, options):
+    # One device's trials, one after another (lax.map: the solvers' step counts vary
+    # between trials, and vmap would run them in lockstep).
     cube = partial(deformable_cube, n_frames=frames, noise=noise, outlier_ratio=outlier_ratio, missing_ratio=missing)
-    evaluate = partial(_evaluate, k=k, method=method, options=options)
+    return jax.lax.map(partial(_evaluate, k=k, method=method, options=options), jax.vmap(cube)(keys))
 
-    def chunk(keys):
-        return jax.lax.map(evaluate, jax.vmap(cube)(keys))
 
-    return jax.vmap(chunk)(keys)
+def _run_setting(keys, noise, outlier_ratio, *, mesh, **static):
+    """Row ``d`` of ``keys`` (devices, trials per device) runs on the mesh's device ``d``;
+    the results come back as arrays sharded over the mesh's trial axis.
+
+    Each device runs the single-device program on its own trials, dispatched
+    asynchronously so that the devices work at the same time, and nothing passes between
+    them. (Neither ``jax.shard_map`` nor a ``vmap`` over a sharded axis serves here:
+    inside ``shard_map`` lineax 0.1 rejects every linear solve -- the vector's structure
+    carries the manual mesh, lineax issue #185 -- and a sharded ``vmap`` turns every
+    solver's stopping test into a collective, which deadlocked on CPU devices.) The price
+    is one XLA compilation per device; the trace and lowering are shared.
+    """
+    parts = {
+        device: _run_trials(jax.device_put(row, device), noise, outlier_ratio, **static)
+        for row, device in zip(keys, mesh.devices.flat, strict=True)
+        if device.process_index == jax.process_index()
+    }
+    sharding = NamedSharding(mesh, PartitionSpec("trials"))
+
+    def assemble(*leaves):
+        return jax.make_array_from_single_device_arrays(
+            (len(keys), *leaves[0].shape), sharding, [leaf[None] for leaf in leaves]
+        )
+
+    return jax.tree.map(assemble, *parts.values())
+
+
+def _gather(x: jax.Array) -> np.ndarray:
+    """Every trial's value on this process (after ``jax.distributed.initialize()`` the
+    other hosts' trials are fetched from them)."""
+    return np.asarray(x if x.is_fully_addressable else multihost_utils.process_allgather(x, tiled=True))
 
 
 def run_sweep(
@@ -106,7 +133,7 @@ def run_sweep(
                 t0 = time.perf_counter()
                 out = jax.block_until_ready(run(keys, jnp.asarray(noise), jnp.asarray(ratio)))
                 elapsed = time.perf_counter() - t0
-                error, precision, recall, ok = (np.asarray(x).reshape(-1)[: settings.trials] for x in out)
+                error, precision, recall, ok = (_gather(x).reshape(-1)[: settings.trials] for x in out)
                 cells.append(
                     dict(
                         outliers=ratio,

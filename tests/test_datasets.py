@@ -86,8 +86,14 @@ def test_data_dir_argument_and_environment(tmp_path, monkeypatch):
 def test_data_dir_default_missing(tmp_path, monkeypatch):
     monkeypatch.delenv("JAXNRSFM_DATA", raising=False)
     monkeypatch.setattr(datasets, "__file__", str(tmp_path / "repo" / "jaxnrsfm" / "datasets.py"))
-    with pytest.raises(FileNotFoundError, match=r"JAXNRSFM_DATA is not set and the default .*shared.data"):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(FileNotFoundError, match=r"JAXNRSFM_DATA is not set and neither .*shared.data"):
         datasets.data_dir()
+    # from the working directory: a clone beside shared/, with the package installed elsewhere
+    (tmp_path / "shared" / "data").mkdir(parents=True)
+    (tmp_path / "clone").mkdir()
+    monkeypatch.chdir(tmp_path / "clone")
+    assert datasets.data_dir() == tmp_path / "shared" / "data"
 
 
 def test_missing_file(tmp_path):
