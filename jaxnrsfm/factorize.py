@@ -52,29 +52,41 @@ class Factorization(eqx.Module):
     """False if the iterative solver hit ``max_steps`` before its tolerance."""
 
 
-def _solve_batched(G: Float[Array, "b r r"], rhs: Float[Array, "b r"]) -> Float[Array, "b r"]:
-    # A relative ridge keeps an (almost) unconstrained factor finite instead of NaN; it
-    # is far below the noise of any real problem.
+def _solve_batched(
+    G: Float[Array, "b r r"], rhs: Float[Array, "b r"], damping: Float[Array, ""] | float = 0.0
+) -> Float[Array, "b r"]:
+    # A relative ridge keeps an (almost) unconstrained factor finite instead of NaN; at
+    # 1e-12 it is far below the noise of any real problem. ``damping`` adds a larger one.
     r = G.shape[-1]
-    ridge = 1e-12 * jnp.trace(G, axis1=-2, axis2=-1)[:, None, None] / r + jnp.finfo(G.dtype).tiny
+    ridge = (1e-12 + damping) * jnp.trace(G, axis1=-2, axis2=-1)[:, None, None] / r + jnp.finfo(G.dtype).tiny
     return jnp.linalg.solve(G + ridge * jnp.eye(r, dtype=G.dtype), rhs[..., None])[..., 0]
 
 
 def als_step(
-    W: Float[Array, "2m n"], mask: Float[Array, "2m n"], M: Float[Array, "2m r"]
+    W: Float[Array, "2m n"],
+    mask: Float[Array, "2m n"],
+    M: Float[Array, "2m r"],
+    damping: Float[Array, ""] | float = 0.0,
 ) -> tuple[Float[Array, "2m r"], Float[Array, "r n"]]:
     """One sweep of masked alternating least squares: S given M, then M given S.
 
     Each column of ``S`` and each row of ``M`` is an independent ``r x r`` normal
-    equation over its visible entries, so the sweep is two batched solves.
+    equation over its visible entries, so the sweep is two batched solves; ``damping``
+    adds that fraction of each equation's mean diagonal to its diagonal (a ridge).
     """
     G = jnp.einsum("ij,ia,ib->jab", mask, M, M)
-    S = _solve_batched(G, jnp.einsum("ij,ia,ij->ja", mask, M, W)).T
+    S = _solve_batched(G, jnp.einsum("ij,ia,ij->ja", mask, M, W), damping).T
     G = jnp.einsum("ij,aj,bj->iab", mask, S, S)
-    M = _solve_batched(G, jnp.einsum("ij,aj,ij->ia", mask, S, W))
+    M = _solve_batched(G, jnp.einsum("ij,aj,ij->ia", mask, S, W), damping)
     # Keep M orthonormal so the gauge cannot drift towards an ill-conditioned pair.
     Q, R = jnp.linalg.qr(M)
     return Q, R @ S
+
+
+DAMPING = 1e-3
+"""Ridge of :func:`initial_fit`'s first ALS sweeps, relative to each normal equation's
+mean diagonal."""
+DAMPED_STEPS = 30
 
 
 def masked_als(
@@ -84,12 +96,15 @@ def masked_als(
     *,
     max_steps: int = 500,
     rtol: float = 1e-10,
+    damped_steps: int | Int[Array, ""] = 0,
 ) -> tuple[Float[Array, "2m r"], Float[Array, "r n"], Int[Array, ""], Bool[Array, ""]]:
     """Minimise ``sum_ij weights_ij |w_ij - M_i s_j|^2`` by alternating least squares from ``M0``.
 
     ``weights`` is a visibility mask (bool) or non-negative per-entry weights; a zero
-    weight is a missing entry. Stops when a sweep lowers the cost by less than ``rtol``
-    of itself, or when the cost is negligible against the data.
+    weight is a missing entry. The first ``damped_steps`` sweeps are damped (ridge
+    ``DAMPING``, see :func:`initial_fit`); then, undamped, it stops when a sweep lowers
+    the cost by less than ``rtol`` of itself, or when the cost is negligible against the
+    data.
     """
     mask = row_mask(weights).astype(W.dtype)
     scale = jnp.sum(mask * W**2)
@@ -98,17 +113,22 @@ def masked_als(
     def cost(M, S):
         return jnp.sum(mask * (W - M @ S) ** 2)
 
+    def damping(step):
+        return jnp.where(step < damped_steps, DAMPING, 0.0)
+
     def cond(state):
         _, _, c, c_prev, step = state
-        return (step < max_steps) & (c > floor) & (c_prev - c > rtol * c)
+        return (step < max_steps) & ((step < damped_steps) | ((c > floor) & (c_prev - c > rtol * c)))
 
     def body(state):
         M, _, c, _, step = state
-        M, S = als_step(W, mask, M)
-        return M, S, cost(M, S), c, step + 1
+        M, S = als_step(W, mask, M, damping(step))
+        # A damped sweep's cost is no reference for the convergence test: damped ALS
+        # stalls at its own (ridge-biased) fixed point, which the undamped sweeps must leave.
+        return M, S, cost(M, S), jnp.where(step < damped_steps, inf, c), step + 1
 
-    M, S = als_step(W, mask, M0)
     inf = jnp.array(jnp.inf, W.dtype)
+    M, S = als_step(W, mask, M0, damping(0))
     M, S, c, c_prev, steps = jax.lax.while_loop(cond, body, (M, S, cost(M, S), inf, jnp.array(1)))
     converged = (c <= floor) | (c_prev - c <= rtol * c)
     return M, S, steps, converged
@@ -137,12 +157,34 @@ def initial_fit(
     rtol: float = 1e-10,
 ) -> tuple[Float[Array, "2m r"], Float[Array, "r n"], Int[Array, ""], Bool[Array, ""]]:
     """Least-squares rank-``rank`` fit: the truncated SVD when ``complete`` (static) and
-    the weights are uniform, else masked ALS started from the SVD of the mean-filled matrix."""
+    the weights are uniform, else masked ALS started from the SVD of the mean-filled matrix.
+
+    With missing data the least-squares cost has local minima, and ALS runs twice from
+    that start: plainly, and with its first ``DAMPED_STEPS`` sweeps damped (a ridge);
+    the fit of lower cost wins. Neither start is always the better: on 150 frames of
+    Akhter's yoga with 30% missing, rank 7, plain ALS stopped at RMS 0.00277 on the
+    visible entries and 0.58 on the hidden ones (the tracks' RMS is 0.45), the damped
+    start at 0.00221 and 0.00315 (any damping from 1e-4 to 1e-1 led there); on a
+    noise-free 12-frame deformable cube with 30% missing and too low a rank, the plain
+    start found the lower minimum. The sweeps after the damped ones are undamped, so
+    both answers are stationary points of the least-squares cost itself. ``steps``
+    counts the sweeps of both runs."""
     if complete:
         M, S = svd_factors(W, rank)
         return M, S, jnp.array(0), jnp.array(True)
     M0, _ = svd_factors(mean_fill(W, weights > 0), rank)
-    return masked_als(W, weights, M0, max_steps=max_steps, rtol=rtol)
+    mask = row_mask(weights).astype(W.dtype)
+
+    def run(damped):
+        M, S, steps, converged = masked_als(W, weights, M0, max_steps=max_steps, rtol=rtol, damped_steps=damped)
+        return M, S, steps, converged, jnp.sum(mask * (W - M @ S) ** 2)
+
+    # The two runs go one after the other through ``lax.map``: written as two independent
+    # while loops in one compiled function, their batched solves deadlocked XLA's CPU
+    # runtime on a 2-core machine (jaxlib 0.10).
+    M, S, steps, converged, cost = jax.lax.map(run, jnp.array([0, min(DAMPED_STEPS, max_steps // 2)]))
+    best = jnp.argmin(cost)
+    return M[best], S[best], steps.sum(), converged[best]
 
 
 def least_squares_fit(
