@@ -57,6 +57,11 @@ tighter threshold."""
 RIGID_RANK = 4
 """The rank the robust algorithm starts from: a rigid object's augmented rank."""
 
+PASS_RTOL = 1e-6
+"""Convergence tolerance of the rejection passes' fits (the final fit uses the caller's):
+a pass only sets the next weights. On the cube (sigma 2, 20% outliers) 1e-6 instead of
+1e-10 took a third of the ALS sweeps and changed at most 2 of 25200 final inlier labels."""
+
 ANCHOR = 1e-4
 """Weight an entry rejected as an outlier keeps in the final fit. Dropped outright, it
 becomes missing data, and an entry whose neighbours were rejected too (a frame's whole
@@ -203,17 +208,18 @@ def wang(
     W_in, W = W, jax.lax.stop_gradient(W)  # the passes' decisions are constants to the gradient
     ranks = rank_schedule(rank, passes)
     factors = (threshold or 4.0) * np.geomspace(SCHEDULE, 1.0, len(ranks))
-    M, S, steps, converged = initial_fit(W, visible, ranks[0], complete=complete, max_steps=max_steps, rtol=rtol)
+    budget = dict(max_steps=max_steps, rtol=max(rtol, PASS_RTOL))
+    M, S, _, _ = initial_fit(W, visible, ranks[0], complete=complete, **budget)
     weights, kept = visible.astype(W.dtype), visible
     for r, factor in zip(ranks, factors, strict=True):
         if r > M.shape[1]:
             M = _grow(W, weights, M, S, r)
-            M, S, _, _ = masked_als(W, weights, M, max_steps=max_steps, rtol=rtol)
+            M, S, _, _ = masked_als(W, weights, M, **budget)
         errors = entry_errors(W, M @ S)
         bound = factor * robust_scale(errors, kept)
         kept = visible & (errors <= bound)
         weights = jnp.where(visible, 1.0 / (1.0 + (errors / bound) ** 2), 0.0)
-        M, S, steps, converged = masked_als(W, weights, M, max_steps=max_steps, rtol=rtol)
+        M, S, _, _ = masked_als(W, weights, M, **budget)
     inliers, sigma, _ = classify(W, M @ S, visible, threshold, kept)
     weights = inliers.astype(W.dtype)
     if weighted:

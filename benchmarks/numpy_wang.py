@@ -1,0 +1,166 @@
+"""The robust pipeline written the way a researcher would without this library: NumPy and
+SciPy, one trial at a time, no compilation. It is the yardstick of ``speed.py`` and
+follows ``jaxnrsfm`` step for step on complete tracks (``method="wang"``):
+
+1. rank-4 SVD; rejection passes at ranks 4, 6, ..., 3k+1 with Cauchy weights and a
+   falling threshold, each a weighted alternating least-squares fit to rtol 1e-6 (batched
+   ``numpy.linalg.solve`` over the columns and rows, QR to keep ``M`` orthonormal);
+2. the inliers by the Bayes threshold, per-frame x per-point weights, a final weighted fit;
+3. the translation split, the rotation triple by Gauss-Newton from eight starts
+   (``scipy.optimize.least_squares``, Levenberg-Marquardt), all triples and weights
+   from the ``9k x 9k`` eigenproblem, the dominant combination, the shapes.
+
+Left out: the library's Newton polish of the final fit (``jaxnrsfm.implicit.attach``,
+which exists for the gradients) and the canonical gauge of the output (a rotation of
+the world frame and a sign per basis, free of cost and of effect on ``W_hat`` or e3D).
+"""
+
+import numpy as np
+from scipy.optimize import least_squares
+
+RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2.0))
+
+
+def entry_errors(W, fit):
+    d = (W - fit).reshape(-1, 2, W.shape[1])
+    return np.sqrt((d**2).sum(axis=1))
+
+
+def robust_scale(errors, mask):
+    return np.median(errors[mask]) / RAYLEIGH_MEDIAN
+
+
+def svd_factors(A, rank):
+    U, s, Vt = np.linalg.svd(A, full_matrices=False)
+    root = np.sqrt(s[:rank])
+    return U[:, :rank] * root, root[:, None] * Vt[:rank]
+
+
+def _solve(G, rhs):
+    r = G.shape[-1]
+    ridge = 1e-12 * np.trace(G, axis1=1, axis2=2)[:, None, None] / r + np.finfo(float).tiny
+    return np.linalg.solve(G + ridge * np.eye(r), rhs[..., None])[..., 0]
+
+
+def masked_als(W, weights, M, max_steps=500, rtol=1e-10):
+    mask = np.repeat(weights, 2, axis=0)
+    floor = np.finfo(float).eps ** 2 * np.sum(mask * W**2)
+    previous = np.inf
+    for _ in range(max_steps):
+        S = _solve(np.einsum("ij,ia,ib->jab", mask, M, M, optimize=True), np.einsum("ij,ia,ij->ja", mask, M, W)).T
+        M = _solve(np.einsum("ij,aj,bj->iab", mask, S, S, optimize=True), np.einsum("ij,aj,ij->ia", mask, S, W))
+        M, R = np.linalg.qr(M)
+        S = R @ S
+        cost = np.sum(mask * (W - M @ S) ** 2)
+        if cost <= floor or previous - cost <= rtol * cost:
+            break
+        previous = cost
+    return M, S
+
+
+def bayes_threshold(errors, visible, inliers, sigma, bounds=(3.0, 6.0)):
+    eps = 1.0 - inliers.sum() / visible.sum()
+    c = max(eps * sigma / max((1 - eps) * errors[visible].max(), 1e-300), 1e-300)
+    x = bounds[1]
+    for _ in range(10):
+        x = np.sqrt(2 * np.log(max(x / c, 1.0)))
+    return np.clip(x, *bounds)
+
+
+def wang(W, visible, rank, passes=3, pass_rtol=1e-6):
+    start = min(4, rank)
+    ranks = (*range(start, rank, 2), rank)
+    ranks += (rank,) * max(0, passes - len(ranks))
+    factors = 4.0 * np.geomspace(3.0, 1.0, len(ranks))
+    M, S = svd_factors(W, ranks[0])
+    weights, kept = visible.astype(float), visible
+    for r, factor in zip(ranks, factors, strict=True):
+        if r > M.shape[1]:  # new directions: the weighted residual's leading singular vectors
+            U, s, _ = np.linalg.svd(np.repeat(weights, 2, axis=0) * (W - M @ S), full_matrices=False)
+            M = np.concatenate([M, U[:, : r - M.shape[1]] * s[: r - M.shape[1]]], axis=1)
+            M, S = masked_als(W, weights, M, rtol=pass_rtol)
+        errors = entry_errors(W, M @ S)
+        bound = factor * robust_scale(errors, kept)
+        kept = visible & (errors <= bound)
+        weights = np.where(visible, 1 / (1 + (errors / bound) ** 2), 0.0)
+        M, S = masked_als(W, weights, M, rtol=pass_rtol)
+    errors = entry_errors(W, M @ S)
+    sigma = robust_scale(errors, kept)
+    inliers = visible & (errors <= bayes_threshold(errors, visible, kept, sigma) * sigma)
+    e = np.where(inliers, errors, 0.0)
+    frame = np.sqrt((e**2).sum(1) / np.maximum(inliers.sum(1), 1))
+    point = np.sqrt((e**2).sum(0) / np.maximum(inliers.sum(0), 1))
+    weights = np.where(inliers, np.clip(sigma**2 / np.maximum(np.outer(frame, point), 1e-300), 0.1, 10.0), 0.0)
+    weights = np.where(visible & ~inliers, 1e-4, weights)
+    M, S = masked_als(W, weights, M)
+    return M, S, inliers
+
+
+def split_translation(M, S):
+    v = np.linalg.lstsq(S.T, np.ones(S.shape[1]), rcond=None)[0]
+    U = np.linalg.svd(S - S.mean(1, keepdims=True), full_matrices=False)[0][:, : S.shape[0] - 1]
+    T = np.concatenate([U.T - np.outer(U.T @ S.mean(1), v), v[None]], axis=0)
+    S_t, M_t = T @ S, np.linalg.solve(T.T, M.T).T
+    return M_t[:, :-1], S_t[:-1], M_t[:, -1].reshape(-1, 2)
+
+
+def _rotation_residuals(g, Mn):
+    g = g.reshape(-1, 3)
+    a, b = Mn[0::2] @ g, Mn[1::2] @ g
+    aa, bb, ab = (a * a).sum(1), (b * b).sum(1), (a * b).sum(1)
+    return np.concatenate([aa - bb, 2 * ab, [np.sqrt(Mn.shape[0] / 2) * ((aa + bb).mean() / 2 - 1)]])
+
+
+def polar_rows(A):
+    U, _, Vt = np.linalg.svd(A, full_matrices=False)
+    return U @ Vt
+
+
+def rotations_and_trust(Mi, g):
+    A = Mi @ g
+    R2 = polar_rows(A)
+    R = np.concatenate([R2, np.cross(R2[:, 0], R2[:, 1])[:, None]], axis=1)
+    scale = (A**2).sum(axis=(1, 2))
+    return R, scale / scale.max()
+
+
+def triples_given_rotations(M, R, k, trust):
+    Mi = M.reshape(-1, 2, M.shape[1])
+    X = np.einsum("iab,iac->ibc", Mi, R[:, :2]).reshape(len(Mi), -1)
+    G = np.kron(np.einsum("i,iab,iac->bc", trust, Mi, Mi), np.eye(3)) - 0.5 * (trust[:, None] * X).T @ X
+    vecs = np.linalg.eigh(G)[1][:, :k]
+    H = np.concatenate(list(vecs.T.reshape(k, -1, 3)), axis=1)
+    return H, 0.5 * X @ vecs
+
+
+def metric_upgrade(M, S, t, k, starts=8, seed=0):
+    mean = S.mean(1)
+    S, t = S - mean[:, None], t + (M @ mean).reshape(-1, 2)
+    Mi = M.reshape(-1, 2, M.shape[1])
+    Mn = M / np.sqrt(np.mean(M**2))
+    rng = np.random.default_rng(seed)
+    fits = [
+        least_squares(_rotation_residuals, rng.standard_normal(3 * M.shape[1]), args=(Mn,), method="lm")
+        for _ in range(starts)
+    ]
+    g = min(fits, key=lambda f: f.cost).x.reshape(-1, 3)
+    R, trust = rotations_and_trust(Mi, g)
+    H, w = triples_given_rotations(M, R, k, trust)
+    c = np.linalg.svd(w, full_matrices=False)[2][0]
+    R, trust = rotations_and_trust(Mi, np.einsum("blc,l->bc", H.reshape(-1, k, 3), c))
+    H, w = triples_given_rotations(M, R, k, trust)
+    B = np.linalg.solve(H, S).reshape(k, 3, -1)
+    shapes = np.einsum("il,lan->ian", w, B)
+    flat = shapes.reshape(len(shapes), -1)
+    principal = np.linalg.svd(flat, full_matrices=False)[2][0]
+    sign = np.where(flat @ principal < 0, -1.0, 1.0)
+    return sign[:, None, None] * shapes, t
+
+
+def reconstruct(W, visible, k):
+    """The robust pipeline on one complete trial: ``W_hat``, the inliers, the shapes."""
+    M, S, inliers = wang(W, visible, 3 * k + 1)
+    W_hat = M @ S
+    M, S, t = split_translation(M, S)
+    shapes, t = metric_upgrade(M, S, t, k)
+    return W_hat, inliers, shapes
