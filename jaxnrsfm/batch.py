@@ -4,9 +4,8 @@ There is no batched algorithm here, only a choice of how to map
 :func:`~jaxnrsfm.pipeline.reconstruct_prepared`:
 
 - ``"loop"`` (the default): a Python loop over the jit-compiled single trial. On a
-  2-core CPU it was the fastest for the robust method (``benchmarks/batching.py``, 8 cube
-  trials of ``wang``: loop 1.17 s/trial, vmap 1.33, map 1.45; under heavy load map and
-  vmap fell much further behind);
+  2-core CPU it is the fastest for the robust method (``benchmarks/speed.py``, 100 cube
+  trials of ``wang``: loop 0.25 s/trial, map 0.27, vmap 2.0);
 - ``"map"``: ``jax.lax.map``, one trial after another inside one compiled program (what
   a sweep sharded over devices runs on each device);
 - ``"vmap"``: all trials in lockstep: the solvers are while loops, so every trial runs as
