@@ -19,7 +19,7 @@ import os
 import sys
 import time
 
-import jax  # noqa: E402
+import jax
 
 jax.config.update("jax_enable_x64", True)
 
