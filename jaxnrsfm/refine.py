@@ -38,7 +38,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .tracks import to_frames
-from .upgrade import Euclidean, _canonical_bases, _canonical_world, nearest_rotations
+from .upgrade import Euclidean, _canonical_bases, _canonical_world, frame_signs, nearest_rotations
 
 
 def _svt(X: Float[Array, "m p"], tau: Float[Array, ""]) -> Float[Array, "m p"]:
@@ -175,6 +175,8 @@ def refine_upgrade(
         # independent batched LAPACK calls in one jit can deadlock on this CPU backend.
         Mdep = M + 0.0 * eu.metric_residual
         R = nearest_rotations(to_frames(Mdep) @ trace_norm_triple(Mdep, weight=trace_norm))
+        sign = frame_signs(R, tracks)
+        R = R * jnp.stack([sign, sign, jnp.ones_like(sign)], axis=1)[:, :, None]
     else:
         R = eu.rotations
     shapes = nuclear_shapes(tracks, R, steps=steps)

@@ -226,7 +226,8 @@ def bregler_sequence(
     it with Gaussian weights of standard deviation 0.3. A dominant mean shape is what
     makes the per-frame sign of a Bregler reconstruction identifiable: ``(w_i, R_i)``
     and ``(-w_i, diag(-1, -1, 1) R_i)`` project identically, and the library resolves
-    the choice by keeping every shape positively correlated with the principal one.
+    the choice by the signs under which one rigid shape explains the tracks best
+    (:func:`jaxnrsfm.upgrade.frame_signs`).
     ``k = 1`` is a rigid object. Bases have a standard deviation of 50 image units.
     """
     dtype = dtype or jnp.result_type(float)

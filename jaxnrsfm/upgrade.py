@@ -23,8 +23,11 @@ block per frame, ``R_i`` the first two rows of a rotation). The upgrade proceeds
    The rotations are then re-read from the dominant combination of the triples (one
    that no frame's weights nearly cancel) and the triples solved once more.
 4. **Shapes.** ``B = H^-1 S``, ``S_i = sum_l w_il B_l``. The Bregler model cannot tell
-   ``(w_i, R_i)`` from ``(-w_i, diag(-1,-1,1) R_i)`` (a per-frame depth flip); every
-   shape is made to correlate positively with the principal shape. Finally the
+   ``(w_i, R_i)`` from ``(-w_i, diag(-1,-1,1) R_i)`` (a per-frame point reflection of
+   the shape); :func:`frame_signs` picks the signs under which one rigid shape explains
+   the tracks best. (Deciding them on the shapes ``w_i B`` fails on real data: ``H^-1``
+   amplifies the errors of ``H``, and on the Akhter drink sequence a third of the frames
+   came out reflected, e3D 1.26 instead of 0.039 with the same rotations.) Finally the
    reconstruction is put in a canonical gauge: the world frame is the first camera's
    (``R_0 = I``), the mirror image with positive depth skewness in frame 0, and the
    bases are the principal shapes in order of energy, with unit-RMS weights.
@@ -200,14 +203,42 @@ def metric_upgrade(
     model = jnp.einsum("il,iac->ialc", w, R[:, :2]).reshape(Mi.shape)
     metric_residual = jnp.sqrt(jnp.sum((Mi @ H - model) ** 2) / jnp.sum((Mi @ H) ** 2))
 
-    flat = shapes.reshape(shapes.shape[0], -1)
-    principal = truncated_svd(flat, 1)[2][0]
-    sign = jnp.where(flat @ principal < 0, -1.0, 1.0).astype(M.dtype)
+    sign = frame_signs(R, (Mi @ S).astype(M.dtype))
     shapes = sign[:, None, None] * shapes
     R = R * jnp.stack([sign, sign, jnp.ones_like(sign)], axis=1)[:, :, None]
     R, shapes = _canonical_world(R, shapes)
     weights, bases = _canonical_bases(shapes.reshape(shapes.shape[0], -1), k)
     return Euclidean(R, weights, bases.reshape(k, 3, -1), shapes, translations, metric_residual)
+
+
+def frame_signs(R: Float[Array, "m 3 3"], tracks: Float[Array, "m 2 n"], *, sweeps: int = 20) -> Float[Array, " m"]:
+    """Per-frame signs ``s_i = +-1`` resolving Bregler's reflection ambiguity.
+
+    Flipping the first two rows of ``R_i`` (and the weights ``w_i``) reprojects
+    identically but reflects the frame's shape through its centroid. The signs are those
+    under which a single rigid shape ``X`` explains the centred tracks best,
+    ``max_s min_X sum_i |s_i R_i[:2] X - tracks_i|^2``: with ``Y_i = R_i[:2]^T tracks_i``
+    (the in-plane back-projection, whose sign flips with ``s_i``) this is
+    ``max_s s^T K s``, ``K_ij = <Y_i, P^+ Y_j>``, ``P = sum_i R_i[:2]^T R_i[:2]``.
+    Started from the top eigenvector of ``K`` and improved by ``s <- sign(K s)``, which
+    never decreases ``s^T K s`` (``K`` is positive semidefinite). The rigid part of a
+    deforming object decides the signs, so it needs no accurate shapes, only rotations.
+    """
+    R, tracks = jax.lax.stop_gradient((R, tracks))  # signs are piecewise constant
+    P2 = R[:, :2]
+    Y = jnp.einsum("iab,ian->ibn", P2, tracks)
+    ev, V = jnp.linalg.eigh(jnp.einsum("iab,iac->bc", P2, P2))
+    # A static camera leaves P singular (no depth is seen): pseudo-inverse.
+    seen = ev > 1e-8 * ev[-1]
+    inv_sqrt = jnp.where(seen, 1.0 / jnp.sqrt(jnp.where(seen, ev, 1.0)), 0.0)
+    Z = jnp.einsum("ab,ibn->ian", (V * inv_sqrt) @ V.T, Y).reshape(R.shape[0], -1)
+    s = jnp.where(truncated_svd(Z, 1)[0][:, 0] < 0, -1.0, 1.0).astype(R.dtype)
+
+    def sweep(_, s):
+        # Z Z^T s without forming the m x m matrix K.
+        return jnp.where(Z @ (Z.T @ s) < 0, -1.0, 1.0).astype(R.dtype)
+
+    return jax.lax.fori_loop(0, sweeps, sweep, s)
 
 
 def _canonical_world(R: Float[Array, "m 3 3"], shapes: Float[Array, "m 3 n"]):
