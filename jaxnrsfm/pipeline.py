@@ -16,7 +16,7 @@ from . import robust
 from .factorize import Factorization, factorize_prepared
 from .refine import refine_upgrade
 from .status import Status
-from .tracks import from_frames, prepare_tracks
+from .tracks import from_frames, prepare_tracks, row_mask
 from .upgrade import metric_upgrade, split_translation
 
 METHODS = ("direct", "wang", "huynh", "ke_kanade", "huber", "l1", "oracle")
@@ -166,7 +166,8 @@ def reconstruct_prepared(
         M, S, t = fac.M, fac.S, fac.translations
     eu = metric_upgrade(M, S, t, k)
     if options.refine:
-        eu = refine_upgrade(eu, M, fac.W_hat, k, trace_norm=options.trace_norm)
+        tracks = jnp.where(row_mask(fac.inliers), W, fac.W_hat)
+        eu = refine_upgrade(eu, M, tracks, k, trace_norm=options.trace_norm)
     return Reconstruction(
         fac.W_hat,
         fac.inliers,

@@ -43,11 +43,11 @@ def test_refined_shapes_beat_the_upgrade(yoga150):
     gn = float(nr.e3d(refined.shapes, shapes))
     tn = float(nr.e3d(nr.reconstruct(W, k=k, refine=True, trace_norm=0.1).shapes, shapes))
     assert gn < 0.08 and tn < 0.095 and max(gn, tn) < 0.85 * plain
-    # gauge: the refined shapes project onto the fitted tracks with the returned cameras
+    # gauge: the refined shapes project onto the observed tracks with the returned cameras
     assert bool(refined.status == nr.Status.success)
     proj = nr.from_frames(np.einsum("iab,ibn->ian", refined.rotations[:, :2], refined.shapes))
-    fitted = refined.W_hat - nr.from_frames(np.asarray(refined.translations)[:, :, None])
-    np.testing.assert_allclose(proj, fitted, atol=1e-8 * float(np.abs(W).max()))
+    observed = W - nr.from_frames(np.asarray(refined.translations)[:, :, None])
+    np.testing.assert_allclose(proj, observed, atol=1e-8 * float(np.abs(W).max()))
     # weights @ bases is the best rank-k approximation of the shapes (small misfit)
     assert float(refined.metric_residual) < 0.05
 
