@@ -26,8 +26,9 @@ block per frame, ``R_i`` the first two rows of a rotation). The upgrade proceeds
    ``(w_i, R_i)`` from ``(-w_i, diag(-1,-1,1) R_i)`` (a per-frame point reflection of
    the shape); :func:`frame_signs` picks the signs under which one rigid shape explains
    the tracks best. (Deciding them on the shapes ``w_i B`` fails on real data: ``H^-1``
-   amplifies the errors of ``H``, and on the Akhter drink sequence a third of the frames
-   came out reflected, e3D 1.26 instead of 0.039 with the same rotations.) Finally the
+   amplifies the errors of ``H``: on the Akhter drink sequence a third of the frames came
+   out reflected, and e3D with :mod:`jaxnrsfm.refine`'s shapes was 1.26 instead of 0.039
+   for the same rotations.) Finally the
    reconstruction is put in a canonical gauge: the world frame is the first camera's
    (``R_0 = I``), the mirror image with positive depth skewness in frame 0, and the
    bases are the principal shapes in order of energy, with unit-RMS weights.
@@ -217,7 +218,7 @@ def frame_signs(R: Float[Array, "m 3 3"], tracks: Float[Array, "m 2 n"], *, swee
     Flipping the first two rows of ``R_i`` (and the weights ``w_i``) reprojects
     identically but reflects the frame's shape through its centroid. The signs are those
     under which a single rigid shape ``X`` explains the centred tracks best,
-    ``max_s min_X sum_i |s_i R_i[:2] X - tracks_i|^2``: with ``Y_i = R_i[:2]^T tracks_i``
+    ``min_{s, X} sum_i |s_i R_i[:2] X - tracks_i|^2``: with ``Y_i = R_i[:2]^T tracks_i``
     (the in-plane back-projection, whose sign flips with ``s_i``) this is
     ``max_s s^T K s``, ``K_ij = <Y_i, P^+ Y_j>``, ``P = sum_i R_i[:2]^T R_i[:2]``.
     Started from the top eigenvector of ``K`` and improved by ``s <- sign(K s)``, which
