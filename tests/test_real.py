@@ -68,13 +68,20 @@ def test_choose_k_on_exact_bregler_data():
         nr.choose_k(seq.W, tolerance=0.0)
 
 
-def test_frame_signs_undo_random_reflections():
+@pytest.mark.parametrize("static", [False, True])
+def test_frame_signs_undo_random_reflections(static):
     # A Bregler sequence seen with the TRUE rotations, half of them with their first two
-    # rows negated (the reflection ambiguity): frame_signs must find exactly those frames.
+    # rows negated (the reflection ambiguity): frame_signs must find exactly those frames,
+    # also under a static camera (no depth seen: a singular normal matrix).
     seq = nr.bregler_sequence(jax.random.key(3), k=3, n_frames=60, n_points=30)
-    tracks = nr.to_frames(seq.W) - nr.to_frames(seq.W).mean(axis=2, keepdims=True)
+    rotations = np.asarray(seq.rotations)
+    frames = nr.to_frames(seq.W)
+    if static:
+        rotations = np.repeat(rotations[:1], 60, axis=0)
+        frames = np.einsum("iab,ibn->ian", rotations[:, :2], seq.shapes)
+    tracks = frames - frames.mean(axis=2, keepdims=True)
     flips = np.where(np.random.default_rng(0).random(60) < 0.5, -1.0, 1.0)
-    R = np.asarray(seq.rotations) * np.stack([flips, flips, np.ones(60)], axis=1)[:, :, None]
+    R = rotations * np.stack([flips, flips, np.ones(60)], axis=1)[:, :, None]
     signs = np.asarray(frame_signs(R, tracks))
     np.testing.assert_array_equal(signs * flips, np.full(60, signs[0] * flips[0]))
 
