@@ -7,6 +7,9 @@ methods with the same settings:
 * ``refine/GN``: ``refine=True`` (nuclear-norm shapes given the upgrade's rotations);
 * ``refine/TN``: ``refine=True, trace_norm=0.1`` (nuclear-norm shapes given Dai et al.'s
   trace-norm rotations);
+* ``refine/HR``: ``refine=True, rotation_rank=n - 2`` (nuclear-norm shapes given the
+  rotations from a rank-``n - 2`` factorization of the ``n`` points' tracks,
+  :func:`jaxnrsfm.refine.high_rank_rotations`);
 * ``wang/GN``: ``method="wang", refine=True`` (the robust pipeline: the paper's outlier
   rejection, then as refine/GN).
 
@@ -39,6 +42,7 @@ VARIANTS = {
     "upgrade": {},
     "refine/GN": {"refine": True},
     "refine/TN": {"refine": True, "trace_norm": 0.1},
+    "refine/HR": {"refine": True, "rotation_rank": "n - 2"},
     "wang/GN": {"method": "wang", "refine": True},
 }
 ROBUST = "wang/GN"
@@ -50,6 +54,8 @@ def run(name: str) -> dict:
     k = nr.choose_k(seq.W, seq.visible)
     out = {"k": k, "seq": seq}
     for label, kwargs in VARIANTS.items():
+        if kwargs.get("rotation_rank") == "n - 2":
+            kwargs = {**kwargs, "rotation_rank": seq.W.shape[1] - 2}
         t = time.perf_counter()
         rec = nr.reconstruct(seq.W, seq.visible, k=k, **kwargs)
         e = float(nr.e3d(rec.shapes, seq.shapes))

@@ -50,6 +50,9 @@ class Options(eqx.Module):
     trace_norm: float = 0.0
     """With ``refine``: 0 keeps the upgrade's rotations; > 0 takes them from Dai et al.'s
     trace-norm relaxation with this weight (:func:`jaxnrsfm.refine.trace_norm_triple`)."""
+    rotation_rank: int = 0
+    """With ``refine``: 0 keeps the upgrade's rotations; > 0 takes them from the rotation
+    constraints on a factorization of that rank (:func:`jaxnrsfm.refine.high_rank_rotations`)."""
 
 
 class Reconstruction(eqx.Module):
@@ -167,7 +170,7 @@ def reconstruct_prepared(
     eu = metric_upgrade(M, S, t, k)
     if options.refine:
         tracks = jnp.where(row_mask(fac.inliers), W, fac.W_hat)
-        eu = refine_upgrade(eu, M, tracks, k, trace_norm=options.trace_norm)
+        eu = refine_upgrade(eu, M, tracks, k, trace_norm=options.trace_norm, rotation_rank=options.rotation_rank)
     return Reconstruction(
         fac.W_hat,
         fac.inliers,
@@ -202,6 +205,7 @@ def reconstruct(
     rtol: float = 1e-10,
     refine: bool = False,
     trace_norm: float = 0.0,
+    rotation_rank: int = 0,
 ) -> Reconstruction:
     """Reconstruct a nonrigid object from its tracks.
 
@@ -230,6 +234,10 @@ def reconstruct(
     - `refine`, `trace_norm`: recover the shapes by Dai et al.'s nuclear-norm step given
       the rotations (:func:`jaxnrsfm.refine.refine_upgrade`); ``trace_norm > 0`` takes
       the rotations from the trace-norm relaxation with that weight.
+    - `rotation_rank`: with ``refine``, ``> 0`` takes the rotations from the rotation
+      constraints on a rank-``rotation_rank`` factorization of the tracks, well above
+      ``3k`` (:func:`jaxnrsfm.refine.high_rank_rotations`; on motion capture with ``n``
+      points, ``n - 2`` was best). At most ``min(2m, n - 1)``.
 
     **Returns:** a :class:`Reconstruction`; its ``status`` reports, per trial, a solver
     that did not converge or more outliers than the data can lose.
@@ -260,5 +268,18 @@ def reconstruct(
     complete = not isinstance(vis, jax.core.Tracer) and bool(vis.all())
     if not trace_norm >= 0:
         raise ValueError(f"trace_norm must be >= 0; got {trace_norm}")
-    options = Options(threshold, passes, weighted, iterations, delta, max_steps, rtol, refine, trace_norm)
+    if not isinstance(rotation_rank, int) or isinstance(rotation_rank, bool) or rotation_rank < 0:
+        raise ValueError(f"rotation_rank must be a non-negative integer; got {rotation_rank!r}")
+    if rotation_rank and not refine:
+        raise ValueError("rotation_rank is used by refine=True only")
+    if rotation_rank and trace_norm > 0:
+        raise ValueError("choose one rotation source: trace_norm > 0 or rotation_rank > 0, not both")
+    if rotation_rank > min(W0.shape[0], W0.shape[1] - 1):
+        raise ValueError(
+            f"rotation_rank={rotation_rank} exceeds the rank of the centred tracks, min(2m, n - 1) = "
+            f"{min(W0.shape[0], W0.shape[1] - 1)}"
+        )
+    options = Options(
+        threshold, passes, weighted, iterations, delta, max_steps, rtol, refine, trace_norm, rotation_rank
+    )
     return reconstruct_prepared(W0, vis, outliers, k=k, method=method, form=form, complete=complete, options=options)
