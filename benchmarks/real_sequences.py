@@ -46,7 +46,7 @@ VARIANTS = {
     "wang/GN": {"method": "wang", "refine": True},
 }
 ROBUST = "wang/GN"
-FIGURE_VARIANT = ROBUST
+FIGURE_VARIANT = "refine/HR"
 
 
 def run(name: str) -> dict:
