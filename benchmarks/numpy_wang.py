@@ -8,7 +8,8 @@ follows ``jaxnrsfm`` step for step on complete tracks (``method="wang"``):
 2. the inliers by the Bayes threshold, per-frame x per-point weights, a final weighted fit;
 3. the translation split, the rotation triple by Gauss-Newton from eight starts
    (``scipy.optimize.least_squares``, Levenberg-Marquardt), all triples and weights
-   from the ``9k x 9k`` eigenproblem, the dominant combination, the shapes.
+   from the ``9k x 9k`` eigenproblem, the dominant combination, the shapes with each
+   frame's reflection sign from a rigid fit of the back-projected tracks.
 
 Left out: the library's Newton polish of the final fit (``jaxnrsfm.implicit.attach``,
 which exists for the gradients) and the canonical gauge of the output (a rotation of
@@ -151,10 +152,21 @@ def metric_upgrade(M, S, t, k, starts=8, seed=0):
     H, w = triples_given_rotations(M, R, k, trust)
     B = np.linalg.solve(H, S).reshape(k, 3, -1)
     shapes = np.einsum("il,lan->ian", w, B)
-    flat = shapes.reshape(len(shapes), -1)
-    principal = np.linalg.svd(flat, full_matrices=False)[2][0]
-    sign = np.where(flat @ principal < 0, -1.0, 1.0)
-    return sign[:, None, None] * shapes, t
+    return frame_signs(R, Mi @ S)[:, None, None] * shapes, t
+
+
+def frame_signs(R, tracks, sweeps=20):
+    # The signs under which one rigid shape explains the back-projected tracks best.
+    P2 = R[:, :2]
+    Y = np.einsum("iab,ian->ibn", P2, tracks)
+    ev, V = np.linalg.eigh(np.einsum("iab,iac->bc", P2, P2))
+    seen = ev > 1e-8 * ev[-1]
+    inv_sqrt = np.where(seen, 1.0 / np.sqrt(np.where(seen, ev, 1.0)), 0.0)
+    Z = np.einsum("ab,ibn->ian", (V * inv_sqrt) @ V.T, Y).reshape(len(R), -1)
+    s = np.where(np.linalg.svd(Z, full_matrices=False)[0][:, 0] < 0, -1.0, 1.0)
+    for _ in range(sweeps):
+        s = np.where(Z @ (Z.T @ s) < 0, -1.0, 1.0)
+    return s
 
 
 def reconstruct(W, visible, k):

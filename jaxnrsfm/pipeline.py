@@ -274,10 +274,10 @@ def reconstruct(
         raise ValueError("rotation_rank is used by refine=True only")
     if rotation_rank and trace_norm > 0:
         raise ValueError("choose one rotation source: trace_norm > 0 or rotation_rank > 0, not both")
-    if rotation_rank > min(W0.shape[0], W0.shape[1] - 1):
+    centred_rank = min(W0.shape[0], W0.shape[1] - 1)
+    if rotation_rank > centred_rank:
         raise ValueError(
-            f"rotation_rank={rotation_rank} exceeds the rank of the centred tracks, min(2m, n - 1) = "
-            f"{min(W0.shape[0], W0.shape[1] - 1)}"
+            f"rotation_rank={rotation_rank} exceeds the rank of the centred tracks, min(2m, n - 1) = {centred_rank}"
         )
     options = Options(
         threshold, passes, weighted, iterations, delta, max_steps, rtol, refine, trace_norm, rotation_rank

@@ -43,6 +43,7 @@ from .upgrade import (
     Euclidean,
     _canonical_bases,
     _canonical_world,
+    flip_frames,
     frame_signs,
     nearest_rotations,
     rotation_triple,
@@ -164,8 +165,7 @@ def high_rank_rotations(tracks: Float[Array, "m 2 n"], rank: int, *, starts: int
     M = U * s
     g0 = jax.random.normal(jax.random.key(0), (starts, rank, 3), M.dtype)
     R = nearest_rotations(to_frames(M) @ rotation_triple(M, g0))
-    sign = frame_signs(R, frames)
-    return R * jnp.stack([sign, sign, jnp.ones_like(sign)], axis=1)[:, :, None]
+    return flip_frames(R, frame_signs(R, frames))
 
 
 def refine_upgrade(
@@ -207,23 +207,22 @@ def refine_upgrade(
     """
     frames = to_frames(tracks)
     translations = frames.mean(axis=2)
-    tracks = frames - translations[:, :, None]
+    centred = frames - translations[:, :, None]
     if trace_norm > 0:
         # The data dependency on eu orders these LAPACK calls after the upgrade's: two
         # independent batched LAPACK calls in one jit can deadlock on this CPU backend.
         Mdep = M + 0.0 * eu.metric_residual
         R = nearest_rotations(to_frames(Mdep) @ trace_norm_triple(Mdep, weight=trace_norm))
-        sign = frame_signs(R, tracks)
-        R = R * jnp.stack([sign, sign, jnp.ones_like(sign)], axis=1)[:, :, None]
+        R = flip_frames(R, frame_signs(R, centred))
     elif rotation_rank > 0:
         # The same data dependency as above.
-        R = high_rank_rotations(tracks + 0.0 * eu.metric_residual, rotation_rank)
+        R = high_rank_rotations(centred + 0.0 * eu.metric_residual, rotation_rank)
     else:
         R = eu.rotations
-    shapes = nuclear_shapes(tracks, R, steps=steps)
+    shapes = nuclear_shapes(centred, R, steps=steps)
     R, shapes = _canonical_world(R, shapes)
     weights, bases = _canonical_bases(shapes.reshape(shapes.shape[0], -1), k)
     bases = bases.reshape(k, 3, -1)
     model = jnp.einsum("iab,il,lbn->ian", R[:, :2], weights, bases)
-    misfit = jnp.sqrt(jnp.sum((model - tracks) ** 2) / jnp.sum(tracks**2))
+    misfit = jnp.sqrt(jnp.sum((model - centred) ** 2) / jnp.sum(centred**2))
     return Euclidean(R, weights, bases, shapes, translations, misfit)

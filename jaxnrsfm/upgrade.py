@@ -206,7 +206,7 @@ def metric_upgrade(
 
     sign = frame_signs(R, (Mi @ S).astype(M.dtype))
     shapes = sign[:, None, None] * shapes
-    R = R * jnp.stack([sign, sign, jnp.ones_like(sign)], axis=1)[:, :, None]
+    R = flip_frames(R, sign)
     R, shapes = _canonical_world(R, shapes)
     weights, bases = _canonical_bases(shapes.reshape(shapes.shape[0], -1), k)
     return Euclidean(R, weights, bases.reshape(k, 3, -1), shapes, translations, metric_residual)
@@ -240,6 +240,12 @@ def frame_signs(R: Float[Array, "m 3 3"], tracks: Float[Array, "m 2 n"], *, swee
         return jnp.where(Z @ (Z.T @ s) < 0, -1.0, 1.0).astype(R.dtype)
 
     return jax.lax.fori_loop(0, sweeps, sweep, s)
+
+
+def flip_frames(R: Float[Array, "m 3 3"], sign: Float[Array, " m"]) -> Float[Array, "m 3 3"]:
+    """``R`` with the first two rows of frame ``i`` multiplied by ``sign[i]`` (the third,
+    their cross product, is unchanged): the other member of each frame's reflection pair."""
+    return R * jnp.stack([sign, sign, jnp.ones_like(sign)], axis=1)[:, :, None]
 
 
 def _canonical_world(R: Float[Array, "m 3 3"], shapes: Float[Array, "m 3 n"]):
