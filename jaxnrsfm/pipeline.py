@@ -170,7 +170,11 @@ def reconstruct_prepared(
     eu = metric_upgrade(M, S, t, k)
     if options.refine:
         tracks = jnp.where(row_mask(fac.inliers), W, fac.W_hat)
-        eu = refine_upgrade(eu, M, tracks, k, trace_norm=options.trace_norm, rotation_rank=options.rotation_rank)
+        # Known at trace time to have every entry: no mask, and no refills of the rotations.
+        observed = None if complete and method == "direct" else fac.inliers
+        eu = refine_upgrade(
+            eu, M, tracks, k, observed, trace_norm=options.trace_norm, rotation_rank=options.rotation_rank
+        )
     return Reconstruction(
         fac.W_hat,
         fac.inliers,

@@ -69,11 +69,36 @@ def test_high_rank_rotations(yoga150):
 
 
 @needs_data
+def test_high_rank_rotations_with_missing_entries(yoga150):
+    # Entries hidden at random: the high-rank rotations refill them from the nuclear-norm
+    # shapes (refine.high_rank_rotations), and the shapes leave them free. Measured: 0.0339
+    # with 30% hidden against 0.0336 with every entry.
+    W, shapes, _ = yoga150
+    observed = np.asarray(nr.drop_entries(jax.random.key(1), np.ones((150, 41), bool), 0.3))
+    W_missing = np.where(np.repeat(observed, 2, axis=0), np.asarray(W), np.nan)
+    rec = nr.reconstruct(W_missing, k=2, refine=True, rotation_rank=39)
+    assert bool(rec.status == nr.Status.success)
+    assert float(nr.e3d(rec.shapes, shapes)) < 0.04
+    # gauge: the shapes project onto the OBSERVED tracks with the returned cameras
+    proj = np.einsum("iab,ibn->ian", rec.rotations[:, :2], rec.shapes) + np.asarray(rec.translations)[:, :, None]
+    gap = np.where(observed[:, None], proj - np.asarray(nr.to_frames(W)), 0.0)
+    np.testing.assert_allclose(gap, 0.0, atol=1e-8 * float(np.abs(W).max()))
+
+
+@needs_data
 def test_nuclear_shapes_with_true_rotations(yoga150):
     W, shapes, R = yoga150
     Wi = nr.to_frames(W)
-    rec = nr.nuclear_shapes(Wi - Wi.mean(axis=2, keepdims=True), R, steps=300)
+    tracks = Wi - Wi.mean(axis=2, keepdims=True)
+    rec = nr.nuclear_shapes(tracks, R, steps=300)
     assert float(nr.e3d(rec, shapes)) < 0.05  # the rotations, not this step, limit accuracy
+    # With 30% of the entries unobserved, their shape columns are free: the shapes still
+    # project exactly onto the observed tracks, and the low-rank prior fills the rest in.
+    observed = np.asarray(nr.drop_entries(jax.random.key(0), np.ones((150, 41), bool), 0.3))
+    part = nr.nuclear_shapes(tracks, R, observed, steps=300)
+    proj = np.einsum("iab,ibn->ian", np.asarray(R)[:, :2], part)
+    np.testing.assert_allclose(np.where(observed[:, None], proj - np.asarray(tracks), 0.0), 0.0, atol=1e-6)
+    assert float(nr.e3d(part, shapes)) < 0.02  # measured 0.0156, as with every entry
 
 
 def test_choose_k_on_exact_bregler_data():
