@@ -19,9 +19,10 @@ update (``|r_i| = 1``).
 
 Measured (benchmarks/real_sequences.py, shared/data/akhter): with the TRUE rotations this
 step alone gives e3D 0.03--0.05 on pickup, yoga and stretch, so the shape step is not the
-bottleneck; the rotations are. Two rotation sources are offered: the metric upgrade's
-(Gauss--Newton on the rotation constraints) and Dai et al.'s trace-norm relaxation
-(:func:`trace_norm_triple`). Neither is uniformly better on the five sequences.
+bottleneck; the rotations are. Three rotation sources are offered: the metric upgrade's
+(Gauss--Newton on the rotation constraints), Dai et al.'s trace-norm relaxation
+(:func:`trace_norm_triple`) and the same constraints in a high-rank factorization of the
+tracks (:func:`high_rank_rotations`). None is uniformly better on the five sequences.
 
 What did NOT help, and is therefore not here: a joint Gauss--Newton refinement of
 rotations, weights and bases on the reprojection error. Started from the TRUE rotations and
@@ -184,7 +185,9 @@ def high_rank_rotations(
     one that deformation barely moves (the rigid part). Measured on the Akhter sequences
     (41 points), with the nuclear-norm shapes: e3D 0.0271 / 0.1551 / 0.0967 / 0.1055 at
     rank 39 against 0.0392 / 0.1974 / 0.1960 / 0.1603 at rank ``3k`` (drink, pickup, yoga,
-    stretch); rank 40, every direction of the centred tracks, gave a spurious triple on yoga.
+    stretch); rank 40, every direction of the centred tracks, gave a spurious triple on yoga,
+    and yoga's 0.0967 is the best of its ranks (31--38 gave 0.126--0.138; drink, pickup and
+    stretch vary by 0.001, 0.03 and 0.02 over ranks 31--39).
 
     A high-rank factorization needs every entry, and a rank-``3k + 1`` fill-in of the
     missing ones hides exactly the deformation this relies on. With ``observed``, the
@@ -192,8 +195,8 @@ def high_rank_rotations(
     nuclear-norm shapes (:func:`nuclear_shapes`, which leaves them free) given the current
     rotations, and the rotations are solved again. Measured with ``method="wang"`` and 30%
     of the entries missing (drink, stretch): e3D 0.0337 / 0.1433 after the first solve on
-    the rank-``3k + 1`` fill-in, 0.0309 / 0.1356 after three refills (0.0271 / 0.1055 on
-    the complete tracks); the first refill gives most of it.
+    the rank-``3k + 1`` fill-in, 0.0310 / 0.1353 after two refills (0.0271 / 0.1055 on
+    the complete tracks); a third changed them by under 0.3%.
     """
     frames = tracks - tracks.mean(axis=2, keepdims=True)
     R = _rotations_at_rank(frames, rank, starts)
