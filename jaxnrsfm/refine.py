@@ -74,8 +74,8 @@ def nuclear_shapes(
 
     **Arguments:**
 
-    - `tracks`: centred image points per frame, ``(m, 2, n)``; values where not
-      ``observed`` are ignored (any finite value).
+    - `tracks`: centred image points per frame, ``(m, 2, n)``; where not ``observed``,
+      any finite values (they only enter the frame's centroid).
     - `rotations`: ``(m, 3, 3)``; frame ``i`` projects with ``rotations[i, :2]``.
     - `observed`: optional ``(m, n)`` mask. Where it is False the point's shape column is
       free (all three coordinates, not only the depth) and is filled in by the low-rank
