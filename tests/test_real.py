@@ -86,6 +86,22 @@ def test_high_rank_rotations_with_missing_entries(yoga150):
 
 
 @needs_data
+def test_robust_high_rank_rotations_with_outliers(yoga150):
+    # The robust pipeline with the high-rank rotations: rejected entries are refilled like
+    # missing ones. Measured: 0.0309 on the clean tracks (5.2% rejected), 0.0326 with 10%
+    # outliers (+5.7%, 15% rejected, recall 0.96); the shapes reproject onto the inliers.
+    W, shapes, _ = yoga150
+    extent = float(W.max() - W.min())
+    W_out, _ = nr.inject_outliers(jax.random.key(1), W, ratio=0.1, magnitude=(0.025 * extent, 0.125 * extent))
+    clean, dirty = (nr.reconstruct(X, k=2, method="wang", refine=True, rotation_rank=39) for X in (W, W_out))
+    e_clean, e_dirty = (float(nr.e3d(rec.shapes, shapes)) for rec in (clean, dirty))
+    assert e_clean < 0.035 and e_dirty < 1.1 * e_clean
+    proj = np.einsum("iab,ibn->ian", dirty.rotations[:, :2], dirty.shapes) + np.asarray(dirty.translations)[:, :, None]
+    gap = np.where(np.asarray(dirty.inliers)[:, None], proj - np.asarray(nr.to_frames(W_out)), 0.0)
+    np.testing.assert_allclose(gap, 0.0, atol=1e-8 * extent)
+
+
+@needs_data
 def test_nuclear_shapes_with_true_rotations(yoga150):
     W, shapes, R = yoga150
     Wi = nr.to_frames(W)
