@@ -277,6 +277,6 @@ def refine_upgrade(
     bases = bases.reshape(k, 3, -1)
     model = jnp.einsum("iab,il,lbn->ian", R[:, :2], weights, bases)
     target = frames - translations[:, :, None]
-    seen = jnp.ones(frames.shape, bool) if observed is None else jnp.broadcast_to(observed[:, None, :], frames.shape)
+    seen = True if observed is None else observed[:, None, :]
     misfit = jnp.sqrt(jnp.sum(jnp.where(seen, model - target, 0.0) ** 2) / jnp.sum(jnp.where(seen, target, 0.0) ** 2))
     return Euclidean(R, weights, bases, shapes, translations, misfit)
