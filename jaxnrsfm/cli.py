@@ -108,10 +108,16 @@ INPUT is one of:
 * .csv: the 2m x n matrix as a comma-separated table without a header, one matrix row per line (u of
   frame 0, v of frame 0, u of frame 1, ...); an empty cell or nan marks a missing coordinate.
 
-The summary has the mean and RMS reprojection errors over the inliers, the number of observed entries
-rejected as outliers, the status (name and message), the time of the reconstruction in seconds
-(compilation included) and, with ground truth, e3D. Errors in the input print one line on stderr and
-exit with status 1.
+The defaults are jaxnrsfm.reconstruct's: k chosen from the tracks, the paper's robust method, rotations
+from a high-rank factorization and the nuclear-norm shapes.
+
+The summary has the k used, the mean and RMS reprojection errors over the inliers, the number of
+observed entries rejected as outliers, the status (name and message), the time of the reconstruction
+in seconds (compilation included) and, with ground truth, e3D (in the ground truth's frame: the
+camera frame for a static camera, as Akhter's dance). Errors in the input print one line on stderr
+and exit with status 1.
+
+Example: jaxnrsfm reconstruct ../shared/data/akhter/drink.mat --out drink.npz --export drink.wrl
 """
 
 
@@ -124,10 +130,15 @@ def reconstruct(
     tracks_file: Annotated[
         Path, typer.Argument(metavar="INPUT", help="Tracks: .npz, .mat or .csv.", show_default=False)
     ],
-    k: Annotated[int, typer.Option("--k", help="Number of shape bases (1 = rigid).", show_default=False)],
+    k: Annotated[
+        int | None,
+        typer.Option(
+            "--k", help="Number of shape bases (1 = rigid); default: chosen from the tracks.", show_default=False
+        ),
+    ] = None,
     method: Annotated[
-        str, typer.Option(help="direct, wang, huynh or ke_kanade (see jaxnrsfm.reconstruct).")
-    ] = "direct",
+        str, typer.Option(help="wang, direct, huynh, ke_kanade, huber or l1 (see jaxnrsfm.reconstruct).")
+    ] = "wang",
     form: Annotated[
         str, typer.Option(help="augmented (rank 3k+1) or registered (rank 3k; direct only).")
     ] = "augmented",
@@ -151,6 +162,19 @@ def reconstruct(
         str | None, typer.Option(help="Use only these frames: a Python slice START:STOP[:STEP], e.g. 0:100.")
     ] = None,
     fps: Annotated[float, typer.Option(help="Frame rate of the VRML animation.")] = 25.0,
+    refine: Annotated[
+        bool,
+        typer.Option(
+            help="Nuclear-norm shapes given the rotations (Dai et al.); --no-refine keeps the metric upgrade's shapes."
+        ),
+    ] = True,
+    rotation_rank: Annotated[
+        int | None,
+        typer.Option(
+            help="With --refine: rank of the factorization whose rotation constraints give the rotations; "
+            "0 keeps the upgrade's rotations; default: every direction of the tracks above the noise."
+        ),
+    ] = None,
     float32: Annotated[bool, typer.Option("--float32", help="Compute in float32 instead of float64.")] = False,
 ) -> None:
     _setup(float32)
@@ -174,9 +198,11 @@ def reconstruct(
             raise _InputError(f"--fps must be positive; got {fps}")
         tracks = _read_tracks(tracks_file, var)
         W, visible, true_shapes = _select_frames(tracks, frames)
+        frame = tracks.frame
         W = W.astype(np.float32 if float32 else np.float64)  # an explicit float64 under float32 would warn
         t0 = time.perf_counter()
-        rec = jax.block_until_ready(nr.reconstruct(W, visible, k=k, method=method, form=form, threshold=threshold))
+        options = dict(method=method, form=form, threshold=threshold, refine=refine, rotation_rank=rotation_rank)
+        rec = jax.block_until_ready(nr.reconstruct(W, visible, k=k, **options))
         elapsed = time.perf_counter() - t0
         arrays = {name: np.asarray(getattr(rec, name)) for name in names}
         if out is not None:
@@ -192,7 +218,7 @@ def reconstruct(
         "frames": int(visible.shape[0]),
         "points": int(visible.shape[1]),
         "observed": int(visible.sum()),
-        "k": k,
+        "k": int(rec.weights.shape[1]),
         "method": method,
         "form": form,
         "dtype": str(W.dtype),
@@ -202,7 +228,10 @@ def reconstruct(
         "status": _status_name(rec.status),
         "status_message": nr.Status[rec.status],
         "time_s": round(elapsed, 3),
-        "e3d": None if true_shapes is None else _number(nr.e3d(rec.shapes, jnp.asarray(true_shapes, W.dtype))),
+        "e3d": None
+        if true_shapes is None
+        else _number(nr.e3d(rec.shapes_in(frame), jnp.asarray(true_shapes, W.dtype))),
+        "e3d_frame": None if true_shapes is None else frame,
         "out": None if out is None else str(out),
         "export": None if not exported else str(exported[0]),
         "export_files": len(exported),
@@ -304,7 +333,7 @@ def sweep(
 
     from . import robust
     from .metrics import entry_errors
-    from .pipeline import reconstruct_prepared
+    from .pipeline import Options, reconstruct_prepared
     from .plot import plot_residuals, plot_sweep
     from .sweep import run_sweep
     from .synthetic import deformable_cube
@@ -320,14 +349,14 @@ def sweep(
     sigma, ratio = sorted(noise)[len(noise) // 2], max(outliers)
     seq = deformable_cube(jax.random.key(seed), n_frames=frames, noise=sigma, outlier_ratio=ratio)
     W0 = jax.numpy.where(jax.numpy.isnan(seq.W), 0.0, seq.W)
-    rec = reconstruct_prepared(W0, seq.visible, k=k, method="wang")
-    _, scale, factor = robust.classify(W0, rec.W_hat, seq.visible)
+    rec = reconstruct_prepared(W0, seq.visible, k=k, method="wang", options=Options(refine=False))
+    _, model = robust.classify(W0, rec.W_hat, seq.visible)
     lengths = entry_errors(W0, seq.W_clean)
     plot_residuals(
         lengths[seq.visible & ~seq.outliers],
         lengths[seq.outliers],
         entry_errors(W0, rec.W_hat)[seq.visible],
-        float(factor * scale),
+        float(model.threshold),
         out / "fig1.png",
         title=f"one trial, sigma={sigma:g}, {ratio:.0%} outliers, method wang",
     )

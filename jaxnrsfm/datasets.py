@@ -20,6 +20,7 @@ import csv
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import scipy.io
@@ -49,6 +50,33 @@ class Tracks:
     ``rotations[i, :2]`` (the third row is their cross product)."""
     edges: Int[np.ndarray, "e 2"] | None = None
     """Skeleton edges as 0-based point index pairs, for drawing, if known."""
+    frame: Literal["world", "camera"] = "world"
+    """The frame ``shapes`` are given in: ``"world"`` (compare a reconstruction's
+    ``shapes``) or ``"camera"``, each frame's camera coordinates (compare
+    ``camera_shapes``, ``R_i S_i``): see :func:`ground_truth_frame`."""
+
+
+def ground_truth_frame(W: np.ndarray, shapes: np.ndarray) -> Literal["world", "camera"]:
+    """``"camera"`` when one fixed orthographic camera sees every frame of the ground truth
+    (a static camera, as in Akhter's dance: ``W_i = R[:2] S_i`` for one ``R``), else
+    ``"world"``.
+
+    A factorization gives the object's rigid turning to the cameras ``R_i`` whatever the
+    real camera did, so under a static camera the true shapes are comparable with the
+    reconstructed shapes in each frame's camera coordinates, ``R_i S_i`` -- what the
+    published PTA and BMM scripts score on dance (``rotateStruct``, flag ``rotStruct = 1``).
+    Decided by the least-squares fit of one ``2 x 3`` projection to all centred frames:
+    its relative reprojection error is round-off (below ``1e-6``) for a static camera.
+    """
+    m = shapes.shape[0]
+    X = shapes - shapes.mean(axis=2, keepdims=True)
+    frames = W.reshape(m, 2, -1)
+    Y = frames - frames.mean(axis=2, keepdims=True)
+    A = np.concatenate(list(X), axis=1).T  # (m n, 3)
+    B = np.concatenate(list(Y), axis=1).T  # (m n, 2)
+    P, *_ = np.linalg.lstsq(A, B, rcond=None)
+    misfit = np.linalg.norm(A @ P - B) / max(np.linalg.norm(B), np.finfo(float).tiny)
+    return "camera" if misfit < 1e-6 else "world"
 
 
 def data_dir(path: str | os.PathLike | None = None) -> Path:
@@ -123,8 +151,9 @@ def load_akhter(sequence: str | os.PathLike, *, root: str | os.PathLike | None =
     - `root`: the data directory (default: :func:`data_dir`).
 
     **Returns:** :class:`Tracks` with ``shapes`` (``F x 3 x P``, from ``S``), ``rotations``
-    (from ``Rs``; ``None`` for dance, which has none) and ``edges`` (from ``list``, made
-    0-based; ``None`` where absent). ``W`` is complete and on the scale of ``S``.
+    (from ``Rs``; ``None`` for dance, which has none), ``edges`` (from ``list``, made
+    0-based; ``None`` where absent) and ``frame`` (:func:`ground_truth_frame`: ``"camera"``
+    for dance, filmed by a static camera). ``W`` is complete and on the scale of ``S``.
     """
     path = _resolve(sequence, "akhter", root)
     d = _loadmat(path, ("W", "S"))
@@ -139,7 +168,8 @@ def load_akhter(sequence: str | os.PathLike, *, root: str | os.PathLike | None =
         R2 = np.asarray(d["Rs"], np.float64).reshape(F, 2, 3)
         rotations = np.concatenate([R2, np.cross(R2[:, 0], R2[:, 1])[:, None]], axis=1)
     edges = np.asarray(d["list"], np.int64) - 1 if "list" in d else None
-    return Tracks(W, _visible_from_nan(W, str(path)), Path(path).stem, shapes, rotations, edges)
+    frame = ground_truth_frame(W, shapes)
+    return Tracks(W, _visible_from_nan(W, str(path)), Path(path).stem, shapes, rotations, edges, frame)
 
 
 def load_nonrigid_dinosaur(
@@ -211,7 +241,11 @@ def load_mat(path: str | os.PathLike, variable: str = "W") -> Tracks:
     if "Rs" in d and np.shape(d["Rs"]) == (2 * F, 3):
         R2 = np.asarray(d["Rs"], np.float64).reshape(F, 2, 3)
         rotations = np.concatenate([R2, np.cross(R2[:, 0], R2[:, 1])[:, None]], axis=1)
-    return replace(_tracks(W, None, path), shapes=shapes, rotations=rotations)
+    tracks = _tracks(W, None, path)
+    frame = "world"
+    if shapes is not None and tracks.visible.all():
+        frame = ground_truth_frame(W, shapes)
+    return replace(tracks, shapes=shapes, rotations=rotations, frame=frame)
 
 
 def load_npz(path: str | os.PathLike) -> Tracks:

@@ -12,12 +12,14 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from . import robust
+from . import residuals, robust
+from .choose import choose_k
 from .factorize import Factorization, factorize_prepared
+from .metrics import entry_errors
 from .refine import refine_upgrade
 from .status import Status
-from .tracks import from_frames, prepare_tracks, row_mask
-from .upgrade import metric_upgrade, split_translation
+from .tracks import from_frames, prepare_tracks, row_mask, to_frames
+from .upgrade import Euclidean, metric_upgrade, split_translation
 
 METHODS = ("direct", "wang", "huynh", "ke_kanade", "huber", "l1", "oracle")
 """Reconstruction strategies available to :func:`reconstruct`."""
@@ -26,11 +28,12 @@ FORMS = ("augmented", "registered")
 
 
 class Options(eqx.Module):
-    """The methods' tuning knobs (Python scalars: static under jit)."""
+    """The methods' tuning knobs (Python scalars: static under jit). The defaults are
+    :func:`reconstruct`'s."""
 
     threshold: float | None = None
     """Outlier threshold, a multiple of the robust residual scale; ``None`` chooses it
-    from the data (:func:`jaxnrsfm.robust.bayes_threshold`)."""
+    from the data (:mod:`jaxnrsfm.residuals`)."""
     passes: int = 3
     """Minimum number of rejection passes of the robust algorithm (``wang``)."""
     weighted: bool = True
@@ -44,15 +47,16 @@ class Options(eqx.Module):
     """Step budget of the missing-data solver."""
     rtol: float = 1e-10
     """Relative cost decrease below which the missing-data solver stops."""
-    refine: bool = False
+    refine: bool = True
     """Replace the upgrade's shapes by the nuclear-norm shapes given its rotations
     (:func:`jaxnrsfm.refine.refine_upgrade`, Dai et al.'s BMM shape step)."""
     trace_norm: float = 0.0
     """With ``refine``: 0 keeps the upgrade's rotations; > 0 takes them from Dai et al.'s
     trace-norm relaxation with this weight (:func:`jaxnrsfm.refine.trace_norm_triple`)."""
-    rotation_rank: int = 0
+    rotation_rank: int | None = None
     """With ``refine``: 0 keeps the upgrade's rotations; > 0 takes them from the rotation
-    constraints on a factorization of that rank (:func:`jaxnrsfm.refine.high_rank_rotations`)."""
+    constraints on a factorization of that rank (:func:`jaxnrsfm.refine.high_rank_rotations`),
+    ``None`` on the directions of the tracks above the noise (its rule)."""
 
 
 class Reconstruction(eqx.Module):
@@ -85,6 +89,19 @@ class Reconstruction(eqx.Module):
     """Iterations of the factorization solver (0 for a plain SVD)."""
     status: Status
     """Outcome; ``status == Status.success`` when all went well."""
+
+    @property
+    def camera_shapes(self) -> Float[Array, "... m 3 n"]:
+        """The shapes in each frame's camera coordinates, ``R_i S_i``: what a ground truth
+        given in the camera frame (a static camera, e.g. Akhter's dance) is compared with."""
+        return jnp.einsum("...iab,...ibn->...ian", self.rotations, self.shapes)
+
+    def shapes_in(self, frame: Literal["world", "camera"]) -> Float[Array, "... m 3 n"]:
+        """``shapes`` (``"world"``) or :attr:`camera_shapes` (``"camera"``): the shapes in the
+        frame a ground truth is given in (``jaxnrsfm.datasets.Tracks.frame``)."""
+        if frame not in ("world", "camera"):
+            raise ValueError(f"frame must be 'world' or 'camera'; got {frame!r}")
+        return self.shapes if frame == "world" else self.camera_shapes
 
     def reproject(self) -> Float[Array, "2m n"]:
         """The Euclidean model's tracks ``R_i[:2] S_i + t_i``. Equal to ``W_hat`` for exact
@@ -131,7 +148,46 @@ the oracle's 0.9, from a few points left with too few inliers) while its kept re
 looked like noise; only this count gives it away."""
 
 
-def _status(W, visible, fac: Factorization, shapes, rank: int, detects: bool) -> Status:
+MISFIT = 0.12
+"""Largest Kolmogorov--Smirnov distance between the kept residuals and the fitted inlier
+law (:func:`jaxnrsfm.residuals.misfit`) of a detecting method that reports success."""
+
+
+DEPTH_RATIO = 10.0
+"""Largest ratio of the shapes' RMS depth (along each camera's viewing direction) to
+their RMS in-plane extent that :func:`implausible` accepts. The in-plane part of a shape
+is what the tracks show; a real object seen from moving cameras is not ten times deeper
+than it is wide in every view. (The failure it catches: an upgrade whose ``H^-1``
+amplified the misfit into shapes 10^4 times larger than the object, reported as a
+success with a metric residual of 2e-8.)"""
+
+REPROJECTION_RATIO = 0.5
+"""Largest RMS distance, relative to the tracks' RMS spread, between the Euclidean
+model's reprojection and the fitted tracks that :func:`implausible` accepts."""
+
+
+def implausible(
+    rotations: Float[Array, "m 3 3"],
+    shapes: Float[Array, "m 3 n"],
+    translations: Float[Array, "m 2"],
+    W_hat: Float[Array, "2m n"],
+) -> Bool[Array, ""]:
+    """Whether Euclidean shapes are wildly inconsistent with the fitted tracks ``W_hat``:
+    their depth spread is more than ``DEPTH_RATIO`` times their in-plane spread, or their
+    reprojection ``R_i[:2] S_i + t_i`` is farther from ``W_hat`` than ``REPROJECTION_RATIO``
+    of the tracks' spread. Such a result is never reported as a success."""
+    camera = jnp.einsum("iab,ibn->ian", rotations, shapes)
+    misfit = jnp.sqrt(jnp.mean((camera[:, :2] + translations[:, :, None] - to_frames(W_hat)) ** 2))
+    camera = camera - camera.mean(axis=2, keepdims=True)
+    plane = jnp.sqrt(jnp.mean(camera[:, :2] ** 2))
+    depth = jnp.sqrt(jnp.mean(camera[:, 2] ** 2))
+    frames = to_frames(W_hat)
+    spread = jnp.sqrt(jnp.mean((frames - frames.mean(axis=2, keepdims=True)) ** 2))
+    tiny = jnp.finfo(W_hat.dtype).tiny
+    return (depth > DEPTH_RATIO * jnp.maximum(plane, tiny)) | (misfit > REPROJECTION_RATIO * jnp.maximum(spread, tiny))
+
+
+def _status(W, visible, fac: Factorization, eu: Euclidean, rank: int, detects: bool) -> Status:
     # Too few inliers to determine a frame's motion or a point's structure, more rejected
     # than the method survives (the median scale breaks down at half), or kept residuals
     # that do not look like noise: the fit cannot be trusted.
@@ -140,9 +196,12 @@ def _status(W, visible, fac: Factorization, shapes, rank: int, detects: bool) ->
     starved |= inliers.sum() < 0.5 * visible.sum()
     if detects:
         starved |= inliers.sum() < (1 - MAX_REJECTED) * visible.sum()
-        starved |= robust.rayleigh_misfit(W, fac.W_hat, inliers) > robust.MISFIT
-    finite = jnp.all(jnp.isfinite(fac.W_hat)) & jnp.all(jnp.isfinite(shapes))
+        errors = entry_errors(W, fac.W_hat)
+        model = residuals.fit(errors, visible, residuals.scale_floor(W, visible))
+        starved |= residuals.misfit(errors, inliers, model) > MISFIT
+    finite = jnp.all(jnp.isfinite(fac.W_hat)) & jnp.all(jnp.isfinite(eu.shapes))
     status = Status.where(fac.converged, Status.success, Status.not_converged)
+    status = Status.where(implausible(eu.rotations, eu.shapes, eu.translations, fac.W_hat), Status.implausible, status)
     status = Status.where(starved, Status.too_many_outliers, status)
     return Status.where(finite, status, Status.nonfinite)
 
@@ -154,7 +213,7 @@ def reconstruct_prepared(
     outliers: Bool[Array, "m n"] | None = None,
     *,
     k: int,
-    method: str = "direct",
+    method: str = "wang",
     form: str = "augmented",
     complete: bool = False,
     options: Options | None = None,
@@ -188,7 +247,7 @@ def reconstruct_prepared(
         fac.cost,
         eu.metric_residual,
         fac.steps,
-        _status(W, visible, fac, eu.shapes, M.shape[1] + (form == "augmented"), method not in ("direct", "oracle")),
+        _status(W, visible, fac, eu, M.shape[1] + (form == "augmented"), method not in ("direct", "oracle")),
     )
 
 
@@ -196,8 +255,8 @@ def reconstruct(
     W: ArrayLike,
     visible: ArrayLike | None = None,
     *,
-    k: int,
-    method: Literal["direct", "wang", "huynh", "ke_kanade", "huber", "l1", "oracle"] = "direct",
+    k: int | None = None,
+    method: Literal["direct", "wang", "huynh", "ke_kanade", "huber", "l1", "oracle"] = "wang",
     form: Literal["augmented", "registered"] = "augmented",
     outliers: ArrayLike | None = None,
     threshold: float | None = None,
@@ -207,20 +266,32 @@ def reconstruct(
     delta: float = 1.345,
     max_steps: int = 500,
     rtol: float = 1e-10,
-    refine: bool = False,
+    refine: bool = True,
     trace_norm: float = 0.0,
-    rotation_rank: int = 0,
+    rotation_rank: int | None = None,
 ) -> Reconstruction:
     """Reconstruct a nonrigid object from its tracks.
+
+    The defaults are the configuration measured best on real tracks
+    (``benchmarks/real_sequences.py``): ``k`` chosen from the tracks
+    (:func:`jaxnrsfm.choose_k` with ``robust=True``), the paper's robust algorithm
+    (``method="wang"``), rotations from the rotation constraints on a high-rank
+    factorization of the tracks (every direction above the noise,
+    :func:`jaxnrsfm.refine.high_rank_rotations`)
+    and the nuclear-norm shapes of Dai et al.'s BMM (``refine=True``). The paper's own
+    pipeline -- factorization and metric upgrade, shapes ``H^-1 S`` -- is
+    ``refine=False``.
 
     **Arguments:**
 
     - `W`: tracks ``(2m, n)``; rows ``2i, 2i+1`` are u, v of frame ``i``; NaN = missing.
     - `visible`: optional ``(m, n)`` mask of observed entries.
-    - `k`: number of shape bases (1 = rigid).
-    - `method`: ``"direct"`` fits every observed entry by least squares (no outlier
-      handling); ``"wang"`` is the paper's robust algorithm (section 4.2,
-      :func:`jaxnrsfm.robust.wang`); ``"huynh"`` is Huynh et al.'s pseudo-observation
+    - `k`: number of shape bases (1 = rigid); ``None`` (the default) chooses it from the
+      tracks, :func:`jaxnrsfm.choose_k` with ``robust=True`` (needs concrete tracks:
+      under ``jit`` or ``vmap`` give ``k``).
+    - `method`: ``"wang"`` (the default) is the paper's robust algorithm (section 4.2,
+      :func:`jaxnrsfm.robust.wang`); ``"direct"`` fits every observed entry by least
+      squares (no outlier handling); ``"huynh"`` is Huynh et al.'s pseudo-observation
       correction; ``"ke_kanade"`` is Ke & Kanade's L1 factorization by alternating
       linear programs; ``"huber"`` and ``"l1"`` minimise the Huber or L1 loss of the
       reprojection residuals with optimistix (:mod:`jaxnrsfm.objective`); ``"oracle"``
@@ -236,12 +307,14 @@ def reconstruct(
     - `delta`: the Huber loss parameter, in robust residual scales (``method="huber"``).
     - `max_steps`, `rtol`: budget of the missing-data solver.
     - `refine`, `trace_norm`: recover the shapes by Dai et al.'s nuclear-norm step given
-      the rotations (:func:`jaxnrsfm.refine.refine_upgrade`); ``trace_norm > 0`` takes
-      the rotations from the trace-norm relaxation with that weight.
-    - `rotation_rank`: with ``refine``, ``> 0`` takes the rotations from the rotation
-      constraints on a rank-``rotation_rank`` factorization of the tracks, well above
-      ``3k`` (:func:`jaxnrsfm.refine.high_rank_rotations`; on motion capture with ``n``
-      points, ``n - 2`` was best). At most ``min(2m, n - 1)``.
+      the rotations (:func:`jaxnrsfm.refine.refine_upgrade`; the default); ``trace_norm >
+      0`` takes the rotations from the trace-norm relaxation with that weight.
+      ``refine=False`` keeps the metric upgrade's rotations and shapes.
+    - `rotation_rank`: with ``refine``, the rank of the factorization of the tracks whose
+      rotation constraints give the rotations (:func:`jaxnrsfm.refine.high_rank_rotations`);
+      ``None`` (the default) takes every direction of the centred tracks that stands
+      above the noise (:func:`jaxnrsfm.refine.above_noise`); ``0`` keeps the metric
+      upgrade's rotations. At most ``min(2m, n - 1)``.
 
     **Returns:** a :class:`Reconstruction`; its ``status`` reports, per trial, a solver
     that did not converge or more outliers than the data can lose.
@@ -255,6 +328,10 @@ def reconstruct(
         raise ValueError(f"unknown form {form!r}; choose one of {', '.join(FORMS)}")
     if form == "registered" and method != "direct":
         raise ValueError(f"form='registered' supports only method='direct'; {method!r} needs the augmented form")
+    if k is None:
+        if isinstance(W, jax.core.Tracer) or isinstance(visible, jax.core.Tracer):
+            raise ValueError("k=None chooses k from the tracks, which needs concrete arrays: under jit/vmap give k")
+        k = choose_k(W, visible, robust=True)
     if not isinstance(k, int) or isinstance(k, bool) or k < 1:
         raise ValueError(f"k (the number of shape bases) must be a positive integer; got {k!r}")
     if (method == "oracle") != (outliers is not None):
@@ -272,14 +349,18 @@ def reconstruct(
     complete = not isinstance(vis, jax.core.Tracer) and bool(vis.all())
     if not trace_norm >= 0:
         raise ValueError(f"trace_norm must be >= 0; got {trace_norm}")
-    if not isinstance(rotation_rank, int) or isinstance(rotation_rank, bool) or rotation_rank < 0:
-        raise ValueError(f"rotation_rank must be a non-negative integer; got {rotation_rank!r}")
+    if rotation_rank is None and not (refine and not trace_norm):
+        rotation_rank = 0  # the default rule applies to refine's own rotations only
+    if rotation_rank is not None and (
+        not isinstance(rotation_rank, int) or isinstance(rotation_rank, bool) or rotation_rank < 0
+    ):
+        raise ValueError(f"rotation_rank must be None or a non-negative integer; got {rotation_rank!r}")
     if rotation_rank and not refine:
         raise ValueError("rotation_rank is used by refine=True only")
     if rotation_rank and trace_norm > 0:
         raise ValueError("choose one rotation source: trace_norm > 0 or rotation_rank > 0, not both")
     centred_rank = min(W0.shape[0], W0.shape[1] - 1)
-    if rotation_rank > centred_rank:
+    if (rotation_rank or 0) > centred_rank:
         raise ValueError(
             f"rotation_rank={rotation_rank} exceeds the rank of the centred tracks, min(2m, n - 1) = {centred_rank}"
         )

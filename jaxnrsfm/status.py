@@ -16,3 +16,7 @@ class Status(eqx.Enumeration):
         "(the outliers are more than the method can handle)"
     )
     nonfinite = "the solution contains non-finite values (degenerate data)"
+    implausible = (
+        "the Euclidean shapes are inconsistent with the tracks: their depth spread is many times their "
+        "in-plane extent, or they reproject far from the fitted tracks (an upgrade that amplified the misfit)"
+    )

@@ -110,8 +110,10 @@ def run_sweep(
 ) -> dict:
     """Run every (outlier ratio, noise, method) cell of ``settings``; return a
     JSON-ready dict with the settings, and per cell the per-trial errors, precision,
-    recall, status and the wall time (compilation included, reported apart)."""
-    options = Options() if options is None else options
+    recall, status and the wall time (compilation included, reported apart). The
+    protocol scores the 2-D fit, which the shape step does not change: ``options``
+    defaults to ``Options(refine=False)``."""
+    options = Options(refine=False) if options is None else options
     devices = list(jax.devices() if devices is None else devices)
     mesh = Mesh(np.array(devices), ("trials",))
     # Pad the trial axis to a multiple of the device count; the padding is dropped.

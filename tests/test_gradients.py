@@ -19,7 +19,9 @@ from jaxnrsfm.objective import huber_loss
 from jaxnrsfm.tracks import row_mask
 
 K = 2
-TIGHT = dict(rtol=1e-14, max_steps=5000)
+TIGHT = dict(rtol=1e-14, max_steps=5000, refine=False)
+"""A tight forward solve, and the paper's pipeline (metric-upgrade shapes): the gradients
+of the nuclear-norm shape step (``refine=True``) are not verified here."""
 
 
 def _cube(noise, missing=0.0, outliers=0.0, seed=0):
@@ -74,7 +76,7 @@ def test_direct_pipeline_matches_finite_differences(noise, missing):
     probe = jax.random.normal(jax.random.key(3), W.shape)
 
     def f(W):
-        return _outputs(nr.reconstruct(W, seq.visible, k=K, **TIGHT), truth, probe)
+        return _outputs(nr.reconstruct(W, seq.visible, k=K, method="direct", **TIGHT), truth, probe)
 
     assert _check(f, W, [_direction(seq, W)], 1e-4 if noise else 1e-5) < 1e-5
 
@@ -129,7 +131,7 @@ def test_vmap_of_grad_equals_loop_of_grad():
     seqs = jax.vmap(lambda key: nr.deformable_cube(key, noise=1.0, outlier_ratio=0.1, n_frames=8))(keys)
 
     def error(delta, W, visible, clean, outliers):
-        rec = nr.reconstruct(W, visible, k=1, method="huber", delta=delta)
+        rec = nr.reconstruct(W, visible, k=1, method="huber", delta=delta, refine=False)
         return nr.rms_error(clean, rec.W_hat, visible & ~outliers)
 
     grad = jax.grad(error, argnums=(0, 1))
@@ -145,6 +147,6 @@ def test_vmap_of_grad_equals_loop_of_grad():
 def test_float32_gradients_are_finite():
     seq, W, truth = _cube(1.0, missing=0.2)
     W32 = W.astype(jnp.float32)
-    grad = jax.jit(jax.grad(lambda W: nr.e3d(nr.reconstruct(W, seq.visible, k=K).shapes, truth)))(W32)
+    grad = jax.jit(jax.grad(lambda W: nr.e3d(nr.reconstruct(W, seq.visible, k=K, refine=False).shapes, truth)))(W32)
     assert grad.dtype == jnp.float32
     assert bool(jnp.all(jnp.isfinite(grad))) and bool(jnp.any(grad != 0))

@@ -8,10 +8,12 @@ import pytest
 import jaxnrsfm as nr
 
 FORMS = ("augmented", "registered")
+PAPER = dict(method="direct", refine=False)
+"""The paper's pipeline: least squares, metric upgrade, shapes H^-1 S."""
 
 
 def _check_exact(seq, k, form):
-    rec = nr.reconstruct(seq.W, k=k, form=form)
+    rec = nr.reconstruct(seq.W, k=k, form=form, **PAPER)
     assert bool(rec.status == nr.Status.success)
     # M S (+ translations) reproduces W to 1e-9 relative
     rel = jnp.linalg.norm(rec.W_hat - seq.W) / jnp.linalg.norm(seq.W)
@@ -44,7 +46,7 @@ def test_noise_free_bregler_exact(k, form):
 
 def test_rotations_match_truth_up_to_one_orthogonal_transform():
     seq = nr.bregler_sequence(jax.random.key(7), k=3, n_frames=40, n_points=30)
-    rec = nr.reconstruct(seq.W, k=3)
+    rec = nr.reconstruct(seq.W, k=3, **PAPER)
     # The cameras R_i[:2] equal R_true_i[:2] Q for one orthogonal Q: the world frame is
     # arbitrary, and orthographic projection cannot tell a shape from its mirror image
     # (det Q = -1), whose proper rotations then differ from the truth in the third row.
@@ -74,7 +76,7 @@ def test_eq14_error_difference_is_next_singular_value(key):
 def test_complete_noisy_data_reaches_statistical_floor(key):
     seq = nr.deformable_cube(key, noise=2.0)
     for form, rank in (("augmented", 13), ("registered", 12)):
-        rec = nr.reconstruct(seq.W, k=4, form=form)
+        rec = nr.reconstruct(seq.W, k=4, form=form, **PAPER)
         err = nr.rms_error(seq.W_clean, rec.W_hat, jnp.ones((100, 252), bool))
         floor = nr.statistical_floor(2.0, 100, 252, rank)
         assert 0.9 * float(floor) < float(err) < 1.1 * float(floor)
@@ -92,7 +94,7 @@ def test_augmented_beats_registered_with_missing_data():
     for seed in range(5):
         seq = nr.deformable_cube(jax.random.key(seed), noise=2.0, missing_ratio=0.2)
         for form in FORMS:
-            rec = nr.reconstruct(seq.W, k=4, form=form)
+            rec = nr.reconstruct(seq.W, k=4, form=form, **PAPER)
             rms[form].append(float(nr.rms_error(seq.W_clean, rec.W_hat, ~seq.outliers)))
             e3d[form].append(float(nr.e3d(rec.shapes, seq.shapes)))
     assert all(a < r for a, r in zip(e3d["augmented"], e3d["registered"], strict=True))
@@ -108,11 +110,11 @@ def test_vmap_equals_loop():
         return nr.bregler_sequence(key, k=2, n_frames=20, n_points=20, noise=1.0, missing_ratio=0.1)
 
     seqs = jax.vmap(make)(keys)
-    batched = jax.vmap(lambda W, v: nr.reconstruct(W, v, k=2))(seqs.W, seqs.visible)
+    batched = jax.vmap(lambda W, v: nr.reconstruct(W, v, k=2, **PAPER))(seqs.W, seqs.visible)
     ok = batched.status == nr.Status.success
     assert int(jnp.sum(ok)) >= 23
     for t in range(25):
-        one = nr.reconstruct(seqs.W[t], seqs.visible[t], k=2)
+        one = nr.reconstruct(seqs.W[t], seqs.visible[t], k=2, **PAPER)
         assert bool(one.status == nr.Status.success) == bool(ok[t])
         if not ok[t]:
             continue  # an unconverged iterate depends on round-off; its status agrees
@@ -128,7 +130,7 @@ def test_failing_trial_does_not_poison_batch():
     )
 
     def run(W):
-        return jax.vmap(lambda W, v: nr.reconstruct_prepared(W, v, k=1, complete=True))(W, seqs.visible)
+        return jax.vmap(lambda W, v: nr.reconstruct_prepared(W, v, k=1, method="direct", complete=True))(W, seqs.visible)
 
     # A NaN that slipped past validation (the prepared entry point trusts its input):
     # trial 1 reports it, the others are untouched.
@@ -141,8 +143,8 @@ def test_failing_trial_does_not_poison_batch():
 
 def test_pipeline_traces_under_jit():
     seq = nr.bregler_sequence(jax.random.key(1), k=2, n_frames=20, n_points=20, noise=0.5, missing_ratio=0.1)
-    eager = nr.reconstruct(seq.W, seq.visible, k=2)
-    jitted = jax.jit(lambda W, v: nr.reconstruct(W, v, k=2))(seq.W, seq.visible)
+    eager = nr.reconstruct(seq.W, seq.visible, k=2, **PAPER)
+    jitted = jax.jit(lambda W, v: nr.reconstruct(W, v, k=2, **PAPER))(seq.W, seq.visible)
     scale = float(jnp.abs(eager.shapes).max())
     np.testing.assert_allclose(jitted.W_hat, eager.W_hat, rtol=1e-9, atol=1e-9 * scale)
     np.testing.assert_allclose(jitted.shapes, eager.shapes, rtol=1e-6, atol=1e-6 * scale)
@@ -150,7 +152,7 @@ def test_pipeline_traces_under_jit():
 
 def test_float32(key):
     seq = nr.deformable_cube(key, noise=2.0, dtype=jnp.float32)
-    rec = nr.reconstruct(seq.W, k=4)
+    rec = nr.reconstruct(seq.W, k=4, **PAPER)
     assert rec.shapes.dtype == jnp.float32 and rec.W_hat.dtype == jnp.float32
     assert bool(rec.status == nr.Status.success)
     err = nr.rms_error(seq.W_clean, rec.W_hat, jnp.ones((100, 252), bool))
