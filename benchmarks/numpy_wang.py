@@ -5,7 +5,9 @@ follows ``jaxnrsfm`` step for step on complete tracks (``method="wang"``):
 1. rank-4 SVD; rejection passes at ranks 4, 6, ..., 3k+1 with Cauchy weights and a
    falling threshold, each a weighted alternating least-squares fit to rtol 1e-6 (batched
    ``numpy.linalg.solve`` over the columns and rows, QR to keep ``M`` orthonormal);
-2. the inliers by the Bayes threshold, per-frame x per-point weights, a final weighted fit;
+2. the inliers by the residual model (a Student-t / uniform mixture fitted by EM for
+   each degree of freedom, the scale floored at the tracks' precision), per-frame x
+   per-point weights, anchored outliers, a final weighted fit;
 3. the translation split, the rotation triple by Gauss-Newton from eight starts
    (``scipy.optimize.least_squares``, Levenberg-Marquardt), all triples and weights
    from the ``9k x 9k`` eigenproblem, the dominant combination, the shapes with each
@@ -27,8 +29,46 @@ def entry_errors(W, fit):
     return np.sqrt((d**2).sum(axis=1))
 
 
-def robust_scale(errors, mask):
-    return np.median(errors[mask]) / RAYLEIGH_MEDIAN
+def robust_scale(errors, mask, floor):
+    return max(np.median(errors[mask]) / RAYLEIGH_MEDIAN, floor)
+
+
+def log_inlier_density(a, sigma, nu):
+    z = (a / sigma) ** 2
+    tail = -z / 2 if np.isinf(nu) else -(nu + 2) / 2 * np.log1p(z / nu)
+    return np.log(np.maximum(a, 1e-300)) - 2 * np.log(sigma) + tail
+
+
+def residual_threshold(errors, visible, floor, nus=(3, 4, 6, 10, 20, 50, np.inf), steps=40):
+    """The residual model of ``jaxnrsfm.residuals``: per nu, EM on (eps, sigma); the nu of
+    highest likelihood; the boundary where the inlier component stops being the likelier."""
+    a = errors[visible]
+    A = max(a.max(), floor)
+    sigma0 = robust_scale(errors, visible, floor)
+    eps0 = np.clip(np.mean(a > 6 * sigma0), 1e-3, 0.5)
+    best = None
+    for nu in nus:
+        sigma, eps = sigma0, eps0
+        for _ in range(steps + 1):
+            log_in = np.log1p(-eps) + log_inlier_density(a, sigma, nu)
+            log_out = np.log(eps) - np.log(A)
+            r = 1 / (1 + np.exp(log_out - log_in))
+            if _ == steps:
+                break
+            u = 1.0 if np.isinf(nu) else (nu + 2) / (nu + (a / sigma) ** 2)
+            sigma = max(np.sqrt(np.sum(r * u * a**2) / max(2 * r.sum(), 1.0)), floor)
+            eps = np.clip(1 - r.sum() / a.size, 1e-6, 0.5)
+        ll = np.sum(np.logaddexp(log_in, log_out))
+        if best is None or ll > best[0]:
+            best = (ll, sigma, eps, nu)
+    _, sigma, eps, nu = best
+    mode = sigma * (1.0 if np.isinf(nu) else np.sqrt(nu / (nu + 1)))
+    target = np.log(eps) - np.log(A) - np.log1p(-eps)
+    lo, hi = mode, 2 * max(A, mode)
+    for _ in range(60):
+        mid = np.sqrt(lo * hi)
+        lo, hi = (mid, hi) if log_inlier_density(mid, sigma, nu) >= target else (lo, mid)
+    return max(lo, 3.0 * sigma), sigma
 
 
 def svd_factors(A, rank):
@@ -59,40 +99,34 @@ def masked_als(W, weights, M, max_steps=500, rtol=1e-10):
     return M, S
 
 
-def bayes_threshold(errors, visible, inliers, sigma, bounds=(3.0, 6.0)):
-    eps = 1.0 - inliers.sum() / visible.sum()
-    c = max(eps * sigma / max((1 - eps) * errors[visible].max(), 1e-300), 1e-300)
-    x = bounds[1]
-    for _ in range(10):
-        x = np.sqrt(2 * np.log(max(x / c, 1.0)))
-    return np.clip(x, *bounds)
-
-
 def wang(W, visible, rank, passes=3, pass_rtol=1e-6):
     start = min(4, rank)
     ranks = (*range(start, rank, 2), rank)
     ranks += (rank,) * max(0, passes - len(ranks))
     factors = 4.0 * np.geomspace(3.0, 1.0, len(ranks))
     M, S = svd_factors(W, ranks[0])
+    floor = np.sqrt(np.finfo(float).eps) * np.sqrt(np.mean(W[np.repeat(visible, 2, axis=0)] ** 2))
     weights, kept = visible.astype(float), visible
     for r, factor in zip(ranks, factors, strict=True):
         if r > M.shape[1]:  # new directions: the weighted residual's leading singular vectors
-            U, s, _ = np.linalg.svd(np.repeat(weights, 2, axis=0) * (W - M @ S), full_matrices=False)
+            U, s, _ = np.linalg.svd(np.repeat(kept, 2, axis=0) * (W - M @ S), full_matrices=False)
             M = np.concatenate([M, U[:, : r - M.shape[1]] * s[: r - M.shape[1]]], axis=1)
             M, S = masked_als(W, weights, M, rtol=pass_rtol)
         errors = entry_errors(W, M @ S)
-        bound = factor * robust_scale(errors, kept)
+        bound = factor * robust_scale(errors, kept, floor)
         kept = visible & (errors <= bound)
         weights = np.where(visible, 1 / (1 + (errors / bound) ** 2), 0.0)
         M, S = masked_als(W, weights, M, rtol=pass_rtol)
     errors = entry_errors(W, M @ S)
-    sigma = robust_scale(errors, kept)
-    inliers = visible & (errors <= bayes_threshold(errors, visible, kept, sigma) * sigma)
+    threshold, sigma = residual_threshold(errors, visible, floor)
+    inliers = visible & (errors <= threshold)
     e = np.where(inliers, errors, 0.0)
     frame = np.sqrt((e**2).sum(1) / np.maximum(inliers.sum(1), 1))
     point = np.sqrt((e**2).sum(0) / np.maximum(inliers.sum(0), 1))
-    weights = np.where(inliers, np.clip(sigma**2 / np.maximum(np.outer(frame, point), 1e-300), 0.1, 10.0), 0.0)
-    weights = np.where(visible & ~inliers, 1e-4, weights)
+    overall = np.sum(e**2) / max(inliers.sum(), 1)
+    weights = np.where(inliers, np.clip(overall / np.maximum(np.outer(frame, point), 1e-300), 0.1, 10.0), 0.0)
+    rms = np.sqrt(np.mean(W[np.repeat(visible, 2, axis=0)] ** 2))
+    weights = np.where(visible & ~inliers, 1e-4 * max((sigma / rms) ** 2, np.sqrt(np.finfo(float).eps)), weights)
     M, S = masked_als(W, weights, M)
     return M, S, inliers
 

@@ -131,6 +131,8 @@ def main() -> None:
     below = [n for n in names if results[n]["e3d"] < BMM[n]]
     print(f"default below BMM on {len(below)} of {len(names)}: {', '.join(below) or '-'}")
     print(f"default below the smooth-prior figures on: {', '.join(n for n in names if results[n]['e3d'] < SMOOTH[n])}")
+    figure(results, args.out)
+    print(f"figure: {args.out}", flush=True)
 
     print("\n2. the default on degraded tracks (change against its clean e3D)")
     print(
@@ -157,8 +159,6 @@ def main() -> None:
             rec, t = timed(W)
             cells.append(f"{label} half {score(rec, seq, rows):.4f} (k={rec.weights.shape[1]}, {t:.1f} s)")
         print(f"{name:8} " + "  ".join(cells), flush=True)
-    figure(results, args.out)
-    print(f"figure: {args.out}")
 
 
 if __name__ == "__main__":

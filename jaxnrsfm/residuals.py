@@ -74,11 +74,16 @@ class ResidualModel(eqx.Module):
     """True when the residuals are below the precision floor: exact tracks."""
 
 
-def scale_floor(W: Float[Array, "2m n"], visible: Bool[Array, "m n"]) -> Float[Array, ""]:
-    """``sqrt(eps)`` of the RMS of the observed tracks, in their dtype (module docstring)."""
+def track_rms(W: Float[Array, "2m n"], visible: Bool[Array, "m n"]) -> Float[Array, ""]:
+    """The RMS of the observed coordinates (a positive scale of the tracks' numbers)."""
     mask = jnp.repeat(visible, 2, axis=0)
     rms = jnp.sqrt(jnp.sum(jnp.where(mask, W, 0.0) ** 2) / jnp.maximum(mask.sum(), 1))
-    return jnp.sqrt(jnp.finfo(W.dtype).eps) * jnp.maximum(rms, jnp.finfo(W.dtype).tiny)
+    return jnp.maximum(rms, jnp.finfo(W.dtype).tiny)
+
+
+def scale_floor(W: Float[Array, "2m n"], visible: Bool[Array, "m n"]) -> Float[Array, ""]:
+    """``sqrt(eps)`` of the RMS of the observed tracks, in their dtype (module docstring)."""
+    return jnp.sqrt(jnp.finfo(W.dtype).eps) * track_rms(W, visible)
 
 
 def median_scale(errors: Float[Array, "m n"], mask: Bool[Array, "m n"], floor: Float[Array, ""]) -> Float[Array, ""]:
@@ -106,16 +111,19 @@ def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
         r = jax.nn.sigmoid(log_in - log_out)
         return jnp.where(mask, r, 0.0), jnp.logaddexp(log_in, log_out)
 
+    finite = jnp.isfinite(nu)
+    nu_ = jnp.where(finite, nu, 1.0)  # the Rayleigh branch must not see inf (double where)
+
     def step(_, carry):
         sigma, eps = carry
         r, _ = responsibilities(sigma, eps)
         z = (a / sigma) ** 2
-        u = jnp.where(jnp.isfinite(nu), (nu + 2) / (jnp.where(jnp.isfinite(nu), nu, 1.0) + z), 1.0)
+        u = jnp.where(finite, (nu_ + 2) / (nu_ + z), 1.0)
         sigma = jnp.sqrt(jnp.sum(r * u * a**2) / jnp.maximum(2 * jnp.sum(r), 1.0))
         eps = jnp.clip(1.0 - jnp.sum(r) / jnp.maximum(mask.sum(), 1), MIN_EPS, 0.5)
-        return jnp.maximum(sigma, floor), eps
+        return jnp.maximum(sigma, floor).astype(a.dtype), eps.astype(a.dtype)
 
-    sigma, eps = jax.lax.fori_loop(0, EM_STEPS, step, (sigma0, eps0))
+    sigma, eps = jax.lax.fori_loop(0, EM_STEPS, step, (sigma0.astype(a.dtype), eps0.astype(a.dtype)))
     _, log_p = responsibilities(sigma, eps)
     return sigma, eps, jnp.sum(jnp.where(mask, log_p, 0.0))
 
@@ -123,7 +131,9 @@ def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
 def _threshold(sigma, nu, eps, A):
     # The length T beyond the inlier law's mode where (1 - eps) p_in(T) = eps / A, by
     # bisection on a logarithmic scale (p_in decreases there). None such below A: all in.
-    mode = sigma * jnp.where(jnp.isfinite(nu), jnp.sqrt(nu / (nu + 1)), 1.0)
+    finite = jnp.isfinite(nu)
+    nu_ = jnp.where(finite, nu, 1.0)  # double where: no inf in the unused branch's gradient
+    mode = sigma * jnp.where(finite, jnp.sqrt(nu_ / (nu_ + 1)), 1.0)
     target = jnp.log(eps) - jnp.log(A) - jnp.log1p(-eps)
 
     def bisect(_, bounds):

@@ -130,7 +130,9 @@ def test_failing_trial_does_not_poison_batch():
     )
 
     def run(W):
-        return jax.vmap(lambda W, v: nr.reconstruct_prepared(W, v, k=1, method="direct", complete=True))(W, seqs.visible)
+        return jax.vmap(lambda W, v: nr.reconstruct_prepared(W, v, k=1, method="direct", complete=True))(
+            W, seqs.visible
+        )
 
     # A NaN that slipped past validation (the prepared entry point trusts its input):
     # trial 1 reports it, the others are untouched.
