@@ -18,7 +18,7 @@ from .factorize import Factorization, factorize_prepared
 from .metrics import entry_errors
 from .refine import refine_upgrade
 from .status import Status
-from .tracks import from_frames, prepare_tracks, row_mask, to_frames
+from .tracks import centred_spread, from_frames, prepare_tracks, row_mask, to_frames
 from .upgrade import Euclidean, metric_upgrade, split_translation
 
 METHODS = ("direct", "wang", "huynh", "ke_kanade", "huber", "l1", "oracle")
@@ -190,8 +190,7 @@ def implausible(
     camera = camera - camera.mean(axis=2, keepdims=True)
     plane = jnp.sqrt(jnp.mean(camera[:, :2] ** 2))
     depth = jnp.sqrt(jnp.mean(camera[:, 2] ** 2))
-    frames = to_frames(W_hat)
-    spread = jnp.sqrt(jnp.mean((frames - frames.mean(axis=2, keepdims=True)) ** 2))
+    spread = centred_spread(W_hat, jnp.ones((W_hat.shape[0] // 2, W_hat.shape[1]), bool))
     tiny = jnp.finfo(W_hat.dtype).tiny
     return (depth > DEPTH_RATIO * jnp.maximum(plane, tiny)) | (misfit > REPROJECTION_RATIO * jnp.maximum(spread, tiny))
 
@@ -208,10 +207,7 @@ def _status(W, visible, fac: Factorization, eu: Euclidean, rank: int, detects: b
         errors = entry_errors(W, fac.W_hat)
         model = residuals.fit(errors, visible, residuals.scale_floor(W, visible))
         starved |= residuals.misfit(errors, inliers, model) > MISFIT
-        frames = jnp.where(visible[:, None, :], to_frames(W), 0.0)
-        centroid = frames.sum(axis=2, keepdims=True) / jnp.maximum(visible.sum(axis=1), 1)[:, None, None]
-        spread = jnp.sqrt(jnp.sum(jnp.where(visible[:, None, :], frames - centroid, 0.0) ** 2) / (2 * visible.sum()))
-        starved |= model.sigma > SCALE_RATIO * spread
+        starved |= model.sigma > SCALE_RATIO * centred_spread(W, visible)
     finite = jnp.all(jnp.isfinite(fac.W_hat)) & jnp.all(jnp.isfinite(eu.shapes))
     status = Status.where(fac.converged, Status.success, Status.not_converged)
     status = Status.where(implausible(eu.rotations, eu.shapes, eu.translations, fac.W_hat), Status.implausible, status)

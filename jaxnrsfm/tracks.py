@@ -34,6 +34,15 @@ def row_mask(visible: Bool[Array, "m n"]) -> Bool[Array, "2m n"]:
     return jnp.repeat(visible, 2, axis=0)
 
 
+def centred_spread(W: Float[Array, "2m n"], visible: Bool[Array, "m n"]) -> Float[Array, ""]:
+    """The RMS per coordinate of the observed tracks about each frame's visible centroid:
+    the in-plane extent of the object, the yardstick of the plausibility checks."""
+    frames = jnp.where(visible[:, None, :], to_frames(W), 0.0)
+    centroid = frames.sum(axis=2, keepdims=True) / jnp.maximum(visible.sum(axis=1), 1)[:, None, None]
+    centred = jnp.where(visible[:, None, :], frames - centroid, 0.0)
+    return jnp.sqrt(jnp.sum(centred**2) / jnp.maximum(2 * visible.sum(), 1))
+
+
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
