@@ -65,6 +65,37 @@ tracks it falls to 1.5e-12 in float64 (a fixed weight would leave every inlier
 through the residual model, a constant to the gradient like the inlier set."""
 
 
+RECLASSIFY = 2
+"""Rounds of :func:`wang`'s final classification against the least-squares fit of the
+previous round's inliers."""
+
+
+def _anchored(
+    W: Float[Array, "2m n"], visible: Bool[Array, "m n"], inliers: Bool[Array, "m n"], model: residuals.ResidualModel
+) -> Float[Array, "m n"]:
+    # Inliers weigh 1, rejected entries ANCHOR (sigma / rms)^2 (see ANCHOR); not below
+    # sqrt(eps) of ANCHOR: in float32 a smaller weight left the gradients' linear solve
+    # (jaxnrsfm.implicit) too ill-conditioned to converge. A constant to the gradient.
+    relative = jnp.maximum((model.sigma / residuals.track_rms(W, visible)) ** 2, jnp.sqrt(jnp.finfo(W.dtype).eps))
+    return jax.lax.stop_gradient(jnp.where(inliers, 1.0, jnp.where(visible, ANCHOR * relative, 0.0)))
+
+
+def step_weights(
+    errors: Float[Array, "m n"], inliers: Bool[Array, "m n"], floor: Float[Array, ""]
+) -> Float[Array, "m n"]:
+    """Step 5's weights of the inliers: ``sigma^2 / (sigma_i sigma_j)`` clipped to
+    ``[1/10, 10]`` (module docstring), each RMS taken with ``floor^2`` added to its square,
+    so that residuals below the tracks' precision (exact tracks) give uniform weights and
+    the weights are smooth functions of the residuals there too."""
+    kept = jnp.where(inliers, errors, 0.0)
+
+    def rms(axis):
+        return jnp.sqrt(jnp.sum(kept**2, axis) / jnp.maximum(inliers.sum(axis), 1) + floor**2)
+
+    ratio = rms(None) ** 2 / (rms(1)[:, None] * rms(0)[None, :])
+    return jnp.where(inliers, jnp.clip(ratio, 0.1, 10.0), 0.0)
+
+
 def classify(
     W: Float[Array, "2m n"],
     fit: Float[Array, "2m n"],
@@ -124,14 +155,19 @@ def wang(
     4. residuals of *all* observed entries against the new fit, a new threshold (a
        wrongly rejected entry comes back). Steps 3--4 repeat over the passes of
        :func:`rank_schedule`, with a threshold falling from ``SCHEDULE`` times the final
-       one; then the final inliers by :func:`classify`;
-    5. a weighted factorization of the inliers (if ``weighted``).
+       one; then the final inliers by :func:`classify`, judged again (``RECLASSIFY``
+       rounds) against the least-squares fit of the previous round's inliers;
+    5. a weighted factorization of the inliers (if ``weighted``), with the weights of
+       :func:`step_weights` from the residuals of the inliers' least-squares fit.
 
     Steps 6--7 (metric upgrade, per-frame structure) follow in the pipeline.
 
     Gradients: the passes run on ``stop_gradient(W)``; their decisions -- the inlier set
-    and step 5's weights -- are constants, and the final weighted fit is re-attached to
-    ``W`` by :func:`jaxnrsfm.implicit.attach`.
+    and the anchor weight of the rejected entries (see ``ANCHOR``) -- are constants. The
+    inliers' least-squares fit, step 5's weights computed from it, and the final weighted
+    fit are functions of ``W``, re-attached by :func:`jaxnrsfm.implicit.attach` (the
+    final fit with two Newton polish steps: on exact tracks one left the forward solve
+    reproducible only to ~1e-9, too coarse for a finite-difference check).
 
     Two departures from a literal reading, both measured on the paper's cube, both
     needed to match the oracle there:
@@ -165,20 +201,25 @@ def wang(
         weights = jnp.where(visible, 1.0 / (1.0 + (errors / bound) ** 2), 0.0)
         M, S, _, _ = masked_als(W, weights, M, **budget)
     inliers, model = classify(W, M @ S, visible, threshold)
-    errors = entry_errors(W, M @ S)
-    weights = inliers.astype(W.dtype)
+    tight = dict(max_steps=max_steps, rtol=rtol)
+    for _ in range(RECLASSIFY):
+        # The passes' fit is soft-weighted and loosely converged: its inliers are judged
+        # again against the least-squares fit of those inliers (a wrongly rejected entry
+        # comes back; on exact tracks the residuals are then round-off).
+        M, S, _, _ = masked_als(W, _anchored(W, visible, inliers, model), M, **tight)
+        inliers, model = classify(W, M @ S, visible, threshold)
+    base = _anchored(W, visible, inliers, model)
+    M, S, steps, converged = masked_als(W, base, M, **tight)
     if weighted:
-        kept = jnp.where(inliers, errors, 0.0)
-        rms = lambda axis: jnp.sqrt(jnp.sum(kept**2, axis) / jnp.maximum(inliers.sum(axis), 1))  # noqa: E731
-        ratio = rms(None) ** 2 / jnp.maximum(rms(1)[:, None] * rms(0)[None, :], jnp.finfo(W.dtype).tiny)
-        weights = jnp.where(inliers, jnp.clip(ratio, 0.1, 10.0), 0.0)
-    # Not below sqrt(eps) of ANCHOR: in float32 a smaller weight left the gradients'
-    # linear solve (jaxnrsfm.implicit) too ill-conditioned to converge.
-    relative = jnp.maximum((model.sigma / residuals.track_rms(W, visible)) ** 2, jnp.sqrt(jnp.finfo(W.dtype).eps))
-    anchor = ANCHOR * relative
-    weights = jnp.where(visible & ~inliers, anchor, weights)
-    M, S, steps, converged = masked_als(W, weights, M, max_steps=max_steps, rtol=rtol)
-    _, M, S = attach(W_in, weights, M @ S, rank)
+        # Step 5's weights are continuous functions of the tracks (through the inliers'
+        # least-squares fit, re-attached to W) and are differentiated as such.
+        fit, _, _ = attach(W_in, base, M @ S, rank, steps=0)
+        weights = jnp.where(inliers, step_weights(entry_errors(W_in, fit), inliers, floor), base)
+        M, S, more, converged = masked_als(W, jax.lax.stop_gradient(weights), M, **tight)
+        steps = steps + more
+    else:
+        weights = base
+    _, M, S = attach(W_in, weights, M @ S, rank, steps=2)
     return finish(W_in, inliers, M, S, _zero_translations(W), steps, converged)
 
 

@@ -83,10 +83,12 @@ def test_direct_pipeline_matches_finite_differences(noise, missing):
     assert _check(f, W, [_direction(seq, W)], 1e-4 if noise else 1e-5) < 1e-5
 
 
-def test_huber_matches_finite_differences_in_tracks_and_delta():
+@pytest.mark.parametrize("noise", [1.0, 0.0])
+def test_huber_matches_finite_differences_in_tracks_and_delta(noise):
     # The Huber fit's scale comes from the least-squares fit and its solution is
     # re-attached by the implicit function theorem: both carry gradients, in W and delta.
-    seq, W, truth = _cube(1.0, outliers=0.1)
+    # Noise-free tracks with outliers too: the scale is floored at the tracks' precision.
+    seq, W, truth = _cube(noise, outliers=0.1)
     probe = jax.random.normal(jax.random.key(3), W.shape)
 
     def f(x):
@@ -101,16 +103,21 @@ def test_huber_matches_finite_differences_in_tracks_and_delta():
     assert _check(f, x, directions, 1e-5) < 1e-5
 
 
-def test_wang_matches_finite_differences():
-    # Without step 5's weights the paper's algorithm depends on W through its inlier set
-    # (a hard decision: a constant to the gradient) and its final fit.
-    seq, W, truth = _cube(1.0, outliers=0.1)
+@pytest.mark.parametrize(("noise", "h"), [(1.0, 1e-4), (0.0, 1e-3)])
+def test_wang_matches_finite_differences(noise, h):
+    # The default robust method, outliers present: its inlier set is a hard decision (a
+    # constant to the gradient); step 5's weights are functions of the inliers'
+    # least-squares fit and are differentiated. On noise-free tracks the forward solve
+    # is only reproducible to ~1e-9 relative (the anchored outliers barely constrain ALS),
+    # so the difference step is larger there (1e-5 to 1e-3 relative agreement for steps
+    # 3e-4 down to 1e-5 there, below 1e-5 at 1e-3).
+    seq, W, truth = _cube(noise, outliers=0.1)
     probe = jax.random.normal(jax.random.key(3), W.shape)
 
     def f(W):
-        return _outputs(nr.reconstruct(W, seq.visible, k=K, method="wang", weighted=False, **TIGHT), truth, probe)
+        return _outputs(nr.reconstruct(W, seq.visible, k=K, method="wang", **TIGHT), truth, probe)
 
-    assert _check(f, W, [_direction(seq, W)], 1e-4) < 1e-5
+    assert _check(f, W, [_direction(seq, W)], h) < 1e-5
 
 
 def test_weights_match_finite_differences():

@@ -133,12 +133,14 @@ def test_huber_gradient_finite_at_zero_residual():
     [
         pytest.param(partial(nr.bregler_sequence, k=1, n_frames=60, n_points=80), id="bregler-k1"),
         pytest.param(partial(nr.bregler_sequence, k=2, n_frames=60, n_points=80), id="bregler-k2"),
+        pytest.param(partial(nr.bregler_sequence, k=3, n_frames=60, n_points=80), id="bregler-k3"),
         pytest.param(partial(nr.deformable_cube, n_frames=60), id="cube-k4"),
     ],
 )
 def test_wang_on_exact_tracks(make, noise):
     # Exact (or nearly exact) tracks: the residual scale is floored at the tracks'
-    # precision (residuals.scale_floor), so round-off is not taken for outliers.
+    # precision (residuals.scale_floor), so round-off is not taken for outliers, and the
+    # final inliers are judged against their own least-squares fit (robust.RECLASSIFY).
     k = 4 if make.func is nr.deformable_cube else make.keywords["k"]
     for ratio in (0.0, 0.1):
         seq = make(jax.random.key(3), noise=noise, outlier_ratio=ratio)
@@ -147,9 +149,17 @@ def test_wang_on_exact_tracks(make, noise):
         if ratio == 0.0:
             assert int(found.sum()) == 0
             assert bool(rec.status == nr.Status.success)
-        else:
-            # Every outlier is found. Not yet every inlier kept, where that is possible
-            # (issue 17): measured precision 1.0 (Bregler k = 1), 0.998 (k = 2: 481 rejected
-            # for 480 outliers), 0.908 (cube: 1665 for 1512); 0.945 on 30 x 40 Bregler k = 2.
-            _, recall = nr.outlier_precision_recall(found, seq.outliers, seq.visible)
-            assert float(recall) == 1.0
+            continue
+        precision, recall = nr.outlier_precision_recall(found, seq.outliers, seq.visible)
+        assert float(recall) == 1.0
+        if make.func is nr.deformable_cube:
+            # Open (issue 17): on this cube the passes settle on a wrong consensus, 103
+            # inliers of two frames' moving faces rejected (precision 0.936), which the
+            # rank-13 fit of the rest cannot determine; 3 of 8 exact cube trials (60 and 100
+            # frames, seeds 0-3) do so, the other 5 reach precision 1 and 1e-9 fits.
+            continue
+        assert float(precision) == 1.0
+        inliers = seq.visible & ~seq.outliers
+        scale = jnp.sqrt(jnp.mean(seq.W_clean**2))
+        fit = nr.entry_errors(seq.W_clean, rec.W_hat)
+        assert float(jnp.max(jnp.where(inliers, fit, 0.0))) < 1e-6 * float(scale)
