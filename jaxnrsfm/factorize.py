@@ -25,6 +25,11 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .implicit import attach
 from .linalg import svd_factors
 from .tracks import prepare_tracks, row_mask, to_frames
+from .varpro import varpro
+
+SOLVERS = ("auto", "als", "varpro")
+"""Missing-data solvers of :func:`factorize`: masked ALS, ALS finished by variable
+projection (:func:`jaxnrsfm.varpro.varpro`), or ``"auto"``: VarPro only where ALS stalls."""
 
 
 class Factorization(eqx.Module):
@@ -199,16 +204,43 @@ def least_squares_fit(
     complete: bool,
     max_steps: int = 500,
     rtol: float = 1e-10,
+    solver: Literal["auto", "als", "varpro"] = "als",
 ) -> tuple[Float[Array, "2m r"], Float[Array, "r n"], Int[Array, ""], Bool[Array, ""]]:
     """:func:`initial_fit`, differentiable with respect to ``W`` and ``weights``: the
-    truncated SVD directly, masked ALS through the implicit function theorem
-    (:func:`jaxnrsfm.implicit.attach`; the factors come back balanced)."""
+    truncated SVD directly, the missing-data fit through the implicit function theorem
+    (:func:`jaxnrsfm.implicit.attach`; the factors come back balanced).
+
+    ``solver`` (static) chooses the missing-data fit: ``"als"``; ``"varpro"``, ALS then
+    variable projection from its answer; ``"auto"``, VarPro only when ALS stopped at its
+    step limit, the mark of the slow "swamps" where it stalls short of a minimum (on the
+    Oxford dinosaur, rank 4: ALS stopped at RMS 1.6417 after 1000 sweeps, VarPro from
+    there reached the best known 1.084673 in 169 steps; on the paper's cube with 30%
+    missing ALS converged in 48--63 sweeps and VarPro from there changed nothing). A
+    ``lax.cond``: under ``jax.vmap`` it becomes a select and VarPro runs for every
+    member. VarPro needs a visibility mask (``bool`` weights)."""
     if complete:
         return initial_fit(W, weights, rank, complete=True)
+    if solver not in SOLVERS:
+        raise ValueError(f"solver must be one of {SOLVERS}; got {solver!r}")
+    if solver != "als" and weights.dtype != bool:
+        raise ValueError(f"solver={solver!r} needs a visibility mask, not real weights")
     constant = jax.lax.stop_gradient
-    M, S, steps, converged = initial_fit(
-        constant(W), constant(weights), rank, complete=False, max_steps=max_steps, rtol=rtol
-    )
+    W0 = constant(W)
+    M, S, steps, converged = initial_fit(W0, constant(weights), rank, complete=False, max_steps=max_steps, rtol=rtol)
+    if solver != "als":
+
+        def finish_by_varpro(M, S, steps, converged):
+            M, S, more, converged = varpro(W0, weights, M, rtol=rtol)
+            return M, S, steps + more, converged
+
+        run = jnp.logical_not(converged) if solver == "auto" else True
+        if solver == "varpro":
+            M, S, steps, converged = finish_by_varpro(M, S, steps, converged)
+        else:
+            M, S, steps, converged = jax.lax.cond(run, finish_by_varpro, lambda *x: x, M, S, steps, converged)
+        # VarPro's answer is stationary to its tolerance: no Newton polish (attach).
+        _, M, S = attach(W, weights, M @ S, rank, polish=jnp.logical_not(run) if solver == "auto" else False)
+        return M, S, steps, converged
     _, M, S = attach(W, weights, M @ S, rank)
     return M, S, steps, converged
 
@@ -238,15 +270,19 @@ def factorize_prepared(
     complete: bool,
     max_steps: int = 500,
     rtol: float = 1e-10,
+    solver: Literal["auto", "als", "varpro"] = "als",
 ) -> Factorization:
     """:func:`factorize` on already validated, zero-filled tracks (jit-compiled, vmappable).
 
     ``complete`` is static: ``True`` uses the SVD alone, ``False`` refines the SVD of the
-    mean-filled matrix by masked alternating least squares.
+    mean-filled matrix by the missing-data ``solver`` of :func:`least_squares_fit`
+    (``"als"`` here, the pipeline's: a vmapped sweep would run VarPro in every trial).
     """
     t = centroids(W, visible) if register else jnp.zeros((W.shape[0] // 2, 2), W.dtype)
     Wc = jnp.where(row_mask(visible), W - t.reshape(-1)[:, None], 0.0)
-    M, S, steps, converged = least_squares_fit(Wc, visible, rank, complete=complete, max_steps=max_steps, rtol=rtol)
+    M, S, steps, converged = least_squares_fit(
+        Wc, visible, rank, complete=complete, max_steps=max_steps, rtol=rtol, solver=solver
+    )
     return finish(W, visible, M, S, t, steps, converged)
 
 
@@ -258,6 +294,7 @@ def factorize(
     form: Literal["augmented", "registered"] = "augmented",
     max_steps: int = 500,
     rtol: float = 1e-10,
+    solver: Literal["auto", "als", "varpro"] = "auto",
 ) -> Factorization:
     """Low-rank affine factorization of a tracking matrix.
 
@@ -270,13 +307,25 @@ def factorize(
     - `form`: ``"augmented"`` (eq. 12, no registration) or ``"registered"`` (eq. 8,
       each frame centred on its visible centroid first).
     - `max_steps`, `rtol`: the alternating least-squares budget when data is missing.
+    - `solver`: the missing-data solver (:func:`least_squares_fit`): ``"auto"`` (masked
+      ALS, finished by variable projection when ALS stalls at ``max_steps``), ``"als"``
+      or ``"varpro"`` (ALS, then VarPro always). ``steps`` counts both.
 
     **Returns:** a :class:`Factorization`.
     """
     if form not in ("augmented", "registered"):
         raise ValueError(f"form must be 'augmented' or 'registered'; got {form!r}")
+    if solver not in SOLVERS:
+        raise ValueError(f"solver must be one of {SOLVERS}; got {solver!r}")
     W0, vis = prepare_tracks(W, visible, rank=rank)
     complete = not isinstance(vis, jax.core.Tracer) and bool(vis.all())
     return factorize_prepared(
-        W0, vis, rank=rank, register=form == "registered", complete=complete, max_steps=max_steps, rtol=rtol
+        W0,
+        vis,
+        rank=rank,
+        register=form == "registered",
+        complete=complete,
+        max_steps=max_steps,
+        rtol=rtol,
+        solver=solver,
     )

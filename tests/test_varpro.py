@@ -3,6 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxnrsfm as nr
 from jaxnrsfm import datasets
 from jaxnrsfm.factorize import masked_als, mean_fill, svd_factors
 from jaxnrsfm.tracks import prepare_tracks, row_mask
@@ -109,3 +110,28 @@ def test_dino_reaches_best_known_optimum():
     hits = np.abs(np.asarray(errors) - DINO_OPTIMUM) < 1e-5
     assert hits.sum() >= 2, f"RMS of the starts: {np.asarray(errors)}"
     assert float(errors.min()) > DINO_OPTIMUM - 1e-5  # nothing below the best known optimum
+
+
+@pytest.mark.skipif(
+    _dino() is None, reason="lrmf/dino_trimmed.mat absent: set $JAXNRSFM_DATA or provide ../shared/data"
+)
+def test_factorize_default_reaches_dino_optimum():
+    # The default missing-data solver: masked ALS stalls on the dinosaur (its step limit),
+    # and "auto" finishes by variable projection from there.
+    dino = _dino()
+    mask = row_mask(jnp.asarray(dino.visible))
+
+    def rms(fac):
+        W = jnp.where(mask, jnp.nan_to_num(jnp.asarray(dino.W)), 0.0)
+        return float(jnp.sqrt(jnp.sum(jnp.where(mask, W - fac.W_hat, 0.0) ** 2) / mask.sum()))
+
+    default = nr.factorize(dino.W, dino.visible, rank=4)
+    assert abs(rms(default) - DINO_OPTIMUM) < 1e-5 and bool(default.converged)
+    als = nr.factorize(dino.W, dino.visible, rank=4, solver="als")
+    assert not bool(als.converged) and rms(als) > DINO_OPTIMUM + 0.1
+
+
+def test_factorize_solver_errors():
+    W = np.random.default_rng(0).normal(size=(12, 20))
+    with pytest.raises(ValueError, match="solver must be one of"):
+        nr.factorize(W, rank=4, solver="lm")
