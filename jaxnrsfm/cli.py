@@ -312,7 +312,7 @@ def sweep(
     k: Annotated[int, typer.Option(help="Shape bases of the model.")] = 4,
     frames: Annotated[int, typer.Option(help="Frames per sequence.")] = 100,
     seed: Annotated[int, typer.Option(help="PRNG seed; trial t uses fold_in(key(seed), t).")] = 0,
-    out: Annotated[Path, typer.Option(help="Folder for sweep.json and the figures.")] = Path("."),
+    out: Annotated[Path, typer.Option(help="Folder for sweep.json and the figures (created if absent).")] = Path("."),
     float32: Annotated[bool, typer.Option("--float32", help="Compute in float32 instead of float64.")] = False,
 ) -> None:
     """The paper's Fig. 5 protocol on the deformable cube (by default: sigma 1..5, 5% and
@@ -390,5 +390,6 @@ def _check_sweep(noise, outliers, missing, trials, methods, k, frames, out) -> N
         raise ValueError("noise levels must be >= 0, outlier and missing ratios in [0, 1)")
     if 3 * k + 1 > min(2 * frames, 252):
         raise ValueError(f"k={k} needs rank {3 * k + 1}, more than the {frames}-frame cube allows")
-    if not out.is_dir():
-        raise ValueError(f"output folder {out} does not exist")
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file, not a folder")
+    out.mkdir(parents=True, exist_ok=True)  # after every other check: a bad call leaves nothing
