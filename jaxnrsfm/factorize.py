@@ -227,21 +227,21 @@ def least_squares_fit(
     constant = jax.lax.stop_gradient
     W0 = constant(W)
     M, S, steps, converged = initial_fit(W0, constant(weights), rank, complete=False, max_steps=max_steps, rtol=rtol)
-    if solver != "als":
 
-        def finish_by_varpro(M, S, steps, converged):
-            M, S, more, converged = varpro(W0, weights, M, rtol=rtol)
-            return M, S, steps + more, converged
+    def finish_by_varpro(M, S, steps, converged):
+        M, S, more, converged = varpro(W0, weights, M, rtol=rtol)
+        return M, S, steps + more, converged
 
-        run = jnp.logical_not(converged) if solver == "auto" else True
-        if solver == "varpro":
-            M, S, steps, converged = finish_by_varpro(M, S, steps, converged)
-        else:
-            M, S, steps, converged = jax.lax.cond(run, finish_by_varpro, lambda *x: x, M, S, steps, converged)
-        # VarPro's answer is stationary to its tolerance: no Newton polish (attach).
-        _, M, S = attach(W, weights, M @ S, rank, polish=jnp.logical_not(run) if solver == "auto" else False)
-        return M, S, steps, converged
-    _, M, S = attach(W, weights, M @ S, rank)
+    # VarPro's answer is stationary to its tolerance: no Newton polish (attach) after it.
+    polish = True
+    if solver == "varpro":
+        M, S, steps, converged = finish_by_varpro(M, S, steps, converged)
+        polish = False
+    elif solver == "auto":
+        stalled = jnp.logical_not(converged)
+        M, S, steps, converged = jax.lax.cond(stalled, finish_by_varpro, lambda *x: x, M, S, steps, converged)
+        polish = jnp.logical_not(stalled)
+    _, M, S = attach(W, weights, M @ S, rank, polish=polish)
     return M, S, steps, converged
 
 

@@ -201,7 +201,7 @@ def wang(
         weights = jnp.where(visible, 1.0 / (1.0 + (errors / bound) ** 2), 0.0)
         M, S, _, _ = masked_als(W, weights, M, **budget)
     inliers, model = classify(W, M @ S, visible, threshold)
-    bound = model.threshold if threshold is None else threshold * model.sigma
+    take_back = model.threshold if threshold is None else threshold * model.sigma
     tight = dict(max_steps=max_steps, rtol=rtol)
     for _ in range(RECLASSIFY):
         # The passes' fit is soft-weighted and loosely converged: an entry it rejected
@@ -211,7 +211,7 @@ def wang(
         # fit is far off, and a model refitted to it (on the cube at 20% outliers and
         # sigma >= 3) took most outliers back.
         M, S, _, _ = masked_als(W, _anchored(W, visible, inliers, model), M, **tight)
-        inliers = inliers | (visible & (entry_errors(W, M @ S) <= bound))
+        inliers = inliers | (visible & (entry_errors(W, M @ S) <= take_back))
     base = _anchored(W, visible, inliers, model)
     M, S, steps, converged = masked_als(W, base, M, **tight)
     if weighted:
