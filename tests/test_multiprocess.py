@@ -1,0 +1,72 @@
+"""A sweep run as two ``jax.distributed`` processes on one machine gives one process's numbers.
+
+This is the README's several-hosts recipe with both "hosts" on 127.0.0.1: each process owns
+one CPU device, runs the trials of its device, and gathers the other's.
+"""
+
+import json
+import socket
+import subprocess
+import sys
+
+import numpy as np
+
+SCRIPT = """
+import json, sys
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+port, process, out = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+if process >= 0:
+    jax.distributed.initialize(coordinator_address=f"127.0.0.1:{port}", num_processes=2, process_id=process)
+from jaxnrsfm.sweep import SweepSettings, run_sweep
+
+settings = SweepSettings(noise=(1.0,), outliers=(0.1,), trials=5, frames=12, methods=("direct",))
+result = run_sweep(settings)
+with open(out, "w") as f:
+    json.dump(dict(devices=result["devices"], cells=result["cells"]), f)
+"""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start(port: int, process: int, out) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-c", SCRIPT, str(port), str(process), str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def _finish(proc: subprocess.Popen) -> None:
+    try:
+        output, _ = proc.communicate(timeout=240)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        output, _ = proc.communicate()
+    assert proc.returncode == 0, output[-3000:]
+
+
+def test_two_processes_match_one(tmp_path):
+    port = _free_port()
+    outs = [tmp_path / f"process{i}.json" for i in range(2)]
+    single = tmp_path / "single.json"  # process -1: no distributed runtime, one device
+    procs = [_start(port, i, out) for i, out in enumerate(outs)] + [_start(port, -1, single)]
+    for proc in procs:
+        _finish(proc)
+
+    one = json.loads(single.read_text())
+    assert len(one["devices"]) == 1
+    for out in outs:
+        two = json.loads(out.read_text())
+        assert len(two["devices"]) == 2  # one device per process, both in the mesh
+        for a, b in zip(one["cells"], two["cells"], strict=True):
+            assert a["method"] == b["method"] and len(b["error"]) == 5
+            np.testing.assert_allclose(b["error"], a["error"], rtol=1e-9)
+            assert b["success"] == a["success"]
