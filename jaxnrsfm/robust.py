@@ -107,8 +107,13 @@ def classify(
     boundary."""
     errors = entry_errors(W, fit)
     model = residuals.fit(errors, visible, residuals.scale_floor(W, visible))
-    bound = model.threshold if threshold is None else threshold * model.sigma
-    return visible & (errors <= bound), model
+    return visible & (errors <= _boundary(model, threshold)), model
+
+
+def _boundary(model: residuals.ResidualModel, threshold: float | None) -> Float[Array, ""]:
+    """The residual length above which an entry is an outlier: the model's own boundary, or
+    ``threshold`` multiples of its scale."""
+    return model.threshold if threshold is None else threshold * model.sigma
 
 
 def _zero_translations(W):
@@ -201,7 +206,7 @@ def wang(
         weights = jnp.where(visible, 1.0 / (1.0 + (errors / bound) ** 2), 0.0)
         M, S, _, _ = masked_als(W, weights, M, **budget)
     inliers, model = classify(W, M @ S, visible, threshold)
-    take_back = model.threshold if threshold is None else threshold * model.sigma
+    take_back = _boundary(model, threshold)
     tight = dict(max_steps=max_steps, rtol=rtol)
     for _ in range(RECLASSIFY):
         # The passes' fit is soft-weighted and loosely converged: an entry it rejected
