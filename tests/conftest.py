@@ -5,6 +5,8 @@ from pathlib import Path
 import jax
 import pytest
 
+from jaxnrsfm.cli import CACHE_ENV
+
 # Numerical tests run in float64; the library itself never flips this flag.
 jax.config.update("jax_enable_x64", True)
 
@@ -17,7 +19,7 @@ if _SHARED.is_dir():
 # The command line's persistent compilation cache stays off in the tests that call it in this
 # process (it would then cache every later test's programs in the home folder); the test of the
 # cache names its own folder.
-os.environ["JAXNRSFM_CACHE"] = ""
+os.environ[CACHE_ENV] = ""
 
 
 @pytest.fixture
