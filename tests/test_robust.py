@@ -63,9 +63,14 @@ def test_fig5_ordering_small(cube_trials):
     """The paper's Fig. 5 claim at one setting: the robust method beats the three
     baselines (and ``benchmarks/fig5.py`` runs the full protocol)."""
     two = jax.tree.map(lambda x: x[:2], cube_trials)
-    errors = {m: np.asarray(jax.jit(jax.vmap(partial(_evaluate, method=m)))(two)[0]) for m in robust_methods()}
+    results = {m: jax.jit(jax.vmap(partial(_evaluate, method=m)))(two) for m in robust_methods()}
+    errors = {m: np.asarray(r[0]) for m, r in results.items()}
     for baseline in ("direct", "huynh", "ke_kanade"):
         np.testing.assert_array_less(errors["wang"], errors[baseline])
+        # A baseline's status is its own iteration's convergence (pipeline.DETECTING), not
+        # the robust method's residual tests: Huynh's corrections and Ke & Kanade's L1
+        # sweeps reach their stopping rules here, and report success.
+        assert np.asarray(results[baseline][3]).all(), baseline
 
 
 def robust_methods():
