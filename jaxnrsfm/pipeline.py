@@ -195,35 +195,37 @@ def implausible(
     return (depth > DEPTH_RATIO * jnp.maximum(plane, tiny)) | (misfit > REPROJECTION_RATIO * jnp.maximum(spread, tiny))
 
 
+BASELINES = ("huynh", "ke_kanade")
+"""The paper's baselines. Their fit uses every observed entry (corrected, or under the L1
+loss); the inliers they report are :func:`jaxnrsfm.robust.classify`'s, for comparison
+only. Their status (:func:`_status`) says whether *their* iteration converged to its own
+stopping rule, as their papers define them, and the result is finite and plausible; a
+residual-distribution test designed for the robust method says nothing about that."""
+
 DETECTING = ("wang", "huber", "l1")
 """Methods whose status also judges their outlier detection (:func:`_status`): the paper's
-robust algorithm and the library's robust losses decide the inliers their fit relies on.
-``huynh`` and ``ke_kanade`` are baselines: their fit uses every observed entry (corrected or
-under the L1 loss), the inliers they report are :func:`jaxnrsfm.robust.classify`'s for
-comparison only, and their status says whether *their* iteration converged to its own
-stopping rule (and the result is finite and plausible), as their papers define them; a
-residual-distribution test designed for the robust method says nothing about that."""
+robust algorithm and the library's robust losses decide the inliers their fit relies on."""
 
 
 def _status(W, visible, fac: Factorization, eu: Euclidean, rank: int, method: str) -> Status:
     finite = jnp.all(jnp.isfinite(fac.W_hat)) & jnp.all(jnp.isfinite(eu.shapes))
     status = Status.where(fac.converged, Status.success, Status.not_converged)
     status = Status.where(implausible(eu.rotations, eu.shapes, eu.translations, fac.W_hat), Status.implausible, status)
-    if method in DETECTING or method == "oracle":
-        # Too few inliers to determine a frame's motion or a point's structure: the fit
-        # of the inliers cannot be trusted.
-        inliers = fac.inliers
-        starved = jnp.any(inliers.sum(1) < rank) | jnp.any(2 * inliers.sum(0) < rank)
-        starved |= inliers.sum() < 0.5 * visible.sum()
-        if method in DETECTING:
-            # More rejected than the method survives (the median scale breaks down at
-            # half), or kept residuals that do not look like noise.
-            starved |= inliers.sum() < (1 - MAX_REJECTED) * visible.sum()
-            errors = entry_errors(W, fac.W_hat)
-            model = residuals.fit(errors, visible, residuals.scale_floor(W, visible))
-            starved |= residuals.misfit(errors, inliers, model) > MISFIT
-            starved |= model.sigma > SCALE_RATIO * centred_spread(W, visible)
-        status = Status.where(starved, Status.too_many_outliers, status)
+    # Too few of the entries the fit relies on (the inliers it kept; every observed entry
+    # for a baseline) to determine a frame's motion or a point's structure: the fit
+    # cannot be trusted.
+    used = visible if method in BASELINES else fac.inliers
+    starved = jnp.any(used.sum(1) < rank) | jnp.any(2 * used.sum(0) < rank)
+    starved |= used.sum() < 0.5 * visible.sum()
+    if method in DETECTING:
+        # More rejected than the method survives (the median scale breaks down at half),
+        # or kept residuals that do not look like noise.
+        starved |= used.sum() < (1 - MAX_REJECTED) * visible.sum()
+        errors = entry_errors(W, fac.W_hat)
+        model = residuals.fit(errors, visible, residuals.scale_floor(W, visible))
+        starved |= residuals.misfit(errors, used, model) > MISFIT
+        starved |= model.sigma > SCALE_RATIO * centred_spread(W, visible)
+    status = Status.where(starved, Status.too_many_outliers, status)
     return Status.where(finite, status, Status.nonfinite)
 
 

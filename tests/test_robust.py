@@ -67,7 +67,7 @@ def test_fig5_ordering_small(cube_trials):
     errors = {m: np.asarray(r[0]) for m, r in results.items()}
     for baseline in ("direct", "huynh", "ke_kanade"):
         np.testing.assert_array_less(errors["wang"], errors[baseline])
-        # A baseline's status is its own iteration's convergence (pipeline.DETECTING), not
+        # A baseline's status is its own iteration's convergence (pipeline.BASELINES), not
         # the robust method's residual tests: Huynh's corrections and Ke & Kanade's L1
         # sweeps reach their stopping rules here, and report success.
         assert np.asarray(results[baseline][3]).all(), baseline
