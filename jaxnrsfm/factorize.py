@@ -127,7 +127,8 @@ def masked_als(
 
     def cond(state):
         _, _, c, c_prev, step = state
-        return (step < max_steps) & ((step < damped_steps) | ((c > floor) & (c_prev - c > rtol * c)))
+        progress = (step < damped_steps) | ((c > floor) & (c_prev - c > rtol * c))
+        return (step == 0) | ((step < max_steps) & progress)
 
     def body(state):
         M, _, c, _, step = state
@@ -136,9 +137,11 @@ def masked_als(
         # stalls at its own (ridge-biased) fixed point, which the undamped sweeps must leave.
         return M, S, cost(M, S), jnp.where(step < damped_steps, inf, c), step + 1
 
+    # The first sweep runs inside the loop too (``step == 0``): one copy of the sweep in
+    # the compiled program, not two.
     inf = jnp.array(jnp.inf, W.dtype)
-    M, S = als_step(W, mask, M0, damping(0))
-    M, S, c, c_prev, steps = jax.lax.while_loop(cond, body, (M, S, cost(M, S), inf, jnp.array(1)))
+    S0 = jnp.zeros((M0.shape[1], W.shape[1]), W.dtype)
+    M, S, c, c_prev, steps = jax.lax.while_loop(cond, body, (M0, S0, inf, inf, jnp.array(0)))
     converged = (c <= floor) | (c_prev - c <= rtol * c)
     return M, S, steps, converged
 

@@ -14,11 +14,13 @@ Srebro & Jaakkola's weighted low-rank approximation,
 with ``Omega = c psi(|e|) / |e|`` scaled into ``[0, 1]`` (``psi``: the loss's influence
 function; ``psi(a) / a = 1`` for least squares, ``min(1, delta / a)`` for Huber). At a
 fixed point ``Z - L = Omega E`` is orthogonal to the rank-``r`` manifold at ``L``: exactly
-the stationarity of the loss. ``optimistix.root_find`` (Newton, matrix-free GMRES) on
-``T(Z) - Z`` with ``ImplicitAdjoint`` then differentiates ``L`` with respect to the tracks,
-the weights and ``delta`` -- no unrolling, and the gauge of ``(M, S)`` never enters,
-because ``L`` has none. ``L(Z)`` is :func:`jaxnrsfm.linalg.truncated_svd`, finite on
-noise-free data.
+the stationarity of the loss. The implicit function theorem on ``F(Z) = T(Z) - Z = 0`` (a
+``jax.custom_jvp``: ``dZ = -(dF/dZ)^-1 dF/dargs dargs``, solved by matrix-free GMRES with
+lineax; reverse mode transposes that solve) then differentiates ``L`` with respect to the
+tracks, the weights and ``delta`` -- no unrolling, and the gauge of ``(M, S)`` never
+enters, because ``L`` has none. ``L(Z)`` is :func:`jaxnrsfm.linalg.truncated_svd`, finite
+on noise-free data. The forward pass only evaluates ``L(Z)``: the tangent solve is
+compiled and run only where the result is differentiated.
 """
 
 from functools import partial
@@ -27,7 +29,6 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, Bool, Float
 
 from .linalg import svd_factors
@@ -69,6 +70,23 @@ def _em_from_fit(L, args):
 
 def _stationarity(Z, args, *, rank):
     return _em_from_fit(lowrank(Z, rank)[0], args) - Z
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _root(rank: int, Z: Float[Array, "2m n"], args) -> Float[Array, "2m n"]:
+    """``Z``, a root of :func:`_stationarity` at ``args``, as a function of ``args``."""
+    return Z
+
+
+@_root.defjvp
+def _root_jvp(rank, primals, tangents):
+    # The implicit function theorem: F(Z(args), args) = 0, so dF/dZ dZ = -dF/dargs dargs.
+    Z, args = primals
+    _, t_args = tangents
+    stationarity = partial(_stationarity, rank=rank)
+    _, rhs = jax.jvp(lambda args: stationarity(Z, args), (args,), (t_args,))
+    operator = lx.JacobianLinearOperator(stationarity, Z, args)
+    return Z, -lx.linear_solve(operator, rhs, _gmres(Z.dtype)).value
 
 
 def _newton_step(stationarity, Z: Float[Array, "2m n"], fixed) -> Float[Array, "2m n"]:
@@ -116,9 +134,6 @@ def attach(
     args = (W, weights, jnp.asarray(delta, W.dtype))
     fixed = jax.lax.stop_gradient(args)
     stationarity = partial(_stationarity, rank=rank)
-    eps = jnp.finfo(W.dtype).eps
-    gmres = _gmres(W.dtype)
-    newton = optx.Newton(rtol=eps, atol=eps, linear_solver=gmres)
     Z = jax.lax.stop_gradient(_em_from_fit(L, fixed))  # the fixed point, if L is stationary
 
     def newton_steps(Z):
@@ -130,8 +145,5 @@ def attach(
         Z = newton_steps(Z) if polish else Z
     else:
         Z = jax.lax.cond(polish, newton_steps, lambda Z: Z, Z)
-    # No steps: only the implicit function theorem's tangents are attached at Z.
-    sol = optx.root_find(
-        stationarity, newton, Z, args, max_steps=0, throw=False, adjoint=optx.ImplicitAdjoint(linear_solver=gmres)
-    )
-    return lowrank(sol.value, rank)
+    # Only the implicit function theorem's tangents are attached at Z.
+    return lowrank(_root(rank, Z, args), rank)

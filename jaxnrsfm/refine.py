@@ -265,7 +265,9 @@ def high_rank_rotations(
         filled = jnp.where(seen, frames, jnp.einsum("iab,ibn->ian", R[:, :2], shapes))
         return _rotations_at_rank(filled - filled.mean(axis=2, keepdims=True), rank, starts, min_rank)
 
-    return jax.lax.fori_loop(0, refills, refill, R)
+    # Every entry observed (a robust method that rejected nothing): a refill changes nothing.
+    # Skipped then (under vmap, where the cond becomes a select, both run).
+    return jax.lax.cond(jnp.all(observed), lambda R: R, lambda R: jax.lax.fori_loop(0, refills, refill, R), R)
 
 
 def refine_upgrade(

@@ -209,27 +209,46 @@ def wang(
     budget = dict(max_steps=max_steps, rtol=max(rtol, PASS_RTOL))
     M, S, _, _ = initial_fit(W, visible, ranks[0], complete=complete, **budget)
     weights, kept = visible.astype(W.dtype), visible
-    for r, factor in zip(ranks, factors, strict=True):
-        if r > M.shape[1]:
-            M = _grow(W, kept, M, S, r)
-            M, S, _, _ = masked_als(W, weights, M, **budget)
+
+    def sweep(carry, step):
+        # One pass (new weights from the current fit's residuals, then their fit), or, where
+        # ``reweight`` is False, only the fit: a grown rank's first fit keeps the weights.
+        M, S, weights, kept = carry
+        reweight, factor = step
         errors = entry_errors(W, M @ S)
         bound = factor * residuals.median_scale(errors, kept, floor)
-        kept = visible & (errors <= bound)
-        weights = jnp.where(visible, 1.0 / (1.0 + (errors / bound) ** 2), 0.0)
+        kept = jnp.where(reweight, visible & (errors <= bound), kept)
+        weights = jnp.where(reweight, jnp.where(visible, 1.0 / (1.0 + (errors / bound) ** 2), 0.0), weights)
         M, S, _, _ = masked_als(W, weights, M, **budget)
+        return (M, S, weights, kept), None
+
+    # The passes at one rank run as one loop: one copy of their fit in the compiled program.
+    for r in sorted(set(ranks)):
+        at_rank = [(True, f) for f, rank in zip(factors, ranks, strict=True) if rank == r]
+        if r > M.shape[1]:
+            M = _grow(W, kept, M, S, r)
+            S = jnp.concatenate([S, jnp.zeros((r - S.shape[0], S.shape[1]), S.dtype)])
+            at_rank = [(False, 1.0), *at_rank]
+        reweight, factor = zip(*at_rank, strict=True)
+        steps = (jnp.array(reweight), jnp.array(factor, W.dtype))
+        (M, S, weights, kept), _ = jax.lax.scan(sweep, (M, S, weights, kept), steps)
     inliers, model = classify(W, M @ S, visible, threshold)
     take_back = _boundary(model, threshold)
     tight = dict(max_steps=max_steps, rtol=rtol)
-    for _ in range(RECLASSIFY):
+
+    def reclassify(_, carry):
         # The passes' fit is soft-weighted and loosely converged: an entry it rejected
         # comes back if the least-squares fit of the inliers explains it (on exact tracks
         # its residual is then round-off), by the passes' residual model. Only back, and
         # by that model: where the hard inliers leave a frame or point undetermined their
         # fit is far off, and a model refitted to it (on the cube at 20% outliers and
         # sigma >= 3) took most outliers back.
+        M, inliers = carry
         M, S, _, _ = masked_als(W, anchor_weights(W, visible, inliers, model.sigma), M, **tight)
-        inliers = inliers | (visible & (entry_errors(W, M @ S) <= take_back))
+        return M, inliers | (visible & (entry_errors(W, M @ S) <= take_back))
+
+    # Loops, not unrolled rounds: one copy of each fit in the compiled program.
+    M, inliers = jax.lax.fori_loop(0, RECLASSIFY, reclassify, (M, inliers))
     # The final weights are continuous functions of the tracks, through the inliers'
     # least-squares fit re-attached to W, and are differentiated as such: step 5's
     # weights of the inliers (if ``weighted``) and the rejected entries' weight, from the
@@ -238,14 +257,16 @@ def wang(
     # second's by the first fit's scale, so that the constant's part in the gradient is
     # second order (on the 12-frame cube at sigma 1 with one fit: 2.6e-5 relative from
     # finite differences, with two 5.0e-7, and 2.2e-7 at sigma 0).
-    weights = anchor_weights(W, visible, inliers, model.sigma)
-    steps = jnp.array(0)
-    for _ in range(2):
-        M, S, more, converged = masked_als(W, jax.lax.stop_gradient(weights), M, **tight)
-        steps = steps + more
+
+    def refit(_, carry):
+        M, weights, _, steps = carry
+        M, S, more, _ = masked_als(W, jax.lax.stop_gradient(weights), M, **tight)
         fit, _, _ = attach(W_in, weights, M @ S, rank, steps=0)
         errors = entry_errors(W_in, fit)
-        weights = anchor_weights(W_in, visible, inliers, inlier_scale(errors, inliers, floor))
+        return M, anchor_weights(W_in, visible, inliers, inlier_scale(errors, inliers, floor)), errors, steps + more
+
+    weights = anchor_weights(W, visible, inliers, model.sigma)
+    M, weights, errors, steps = jax.lax.fori_loop(0, 2, refit, (M, weights, jnp.zeros_like(weights), jnp.array(0)))
     if weighted:
         weights = jnp.where(inliers, step_weights(errors, inliers, floor), weights)
     M, S, more, converged = masked_als(W, jax.lax.stop_gradient(weights), M, **tight)
