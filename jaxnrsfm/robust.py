@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from . import residuals
+from . import residuals, temporal
 from .factorize import Factorization, finish, initial_fit, least_squares_fit, masked_als
 from .implicit import attach
 from .l1 import ke_kanade as ke_kanade_l1
@@ -173,7 +173,9 @@ def wang(
        wrongly rejected entry comes back). Steps 3--4 repeat over the passes of
        :func:`rank_schedule`, with a threshold falling from ``SCHEDULE`` times the final
        one; then the final inliers by :func:`classify`, and (``RECLASSIFY`` rounds) the
-       rejected entries that the least-squares fit of the inliers explains taken back;
+       rejected entries that the least-squares fit of the inliers explains taken back, and
+       those that their own track predicts (:mod:`jaxnrsfm.temporal`; only where the
+       tracks are smooth in time);
     5. a weighted factorization of the inliers (if ``weighted``), with the weights of
        :func:`step_weights` from the residuals of the inliers' least-squares fit.
 
@@ -249,6 +251,8 @@ def wang(
 
     # Loops, not unrolled rounds: one copy of each fit in the compiled program.
     M, inliers = jax.lax.fori_loop(0, RECLASSIFY, reclassify, (M, inliers))
+    # A rejected entry that continues its own track is not an outlier (jaxnrsfm.temporal).
+    inliers = temporal.take_back(W, visible, inliers, take_back, model.sigma)
     # The final weights are continuous functions of the tracks, through the inliers'
     # least-squares fit re-attached to W, and are differentiated as such: step 5's
     # weights of the inliers (if ``weighted``) and the rejected entries' weight, from the
