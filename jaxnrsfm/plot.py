@@ -1,7 +1,7 @@
 """Figures. matplotlib is imported lazily, with the non-interactive Agg backend, so that
 the library itself never needs a display."""
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -19,27 +19,32 @@ def plot_shapes(
     edges=None,
 ) -> Path:
     """Write a PNG of reconstructed shapes (aligned to the truth by the one orthogonal
-    transform of e3D) beside the true ones, one 3-D panel per frame; ``edges`` (E, 2)
-    point-index pairs, such as a skeleton's bones, are drawn as segments."""
+    transform of e3D) over the true ones, one 3-D panel per frame; ``edges`` (E, 2)
+    point-index pairs, such as a skeleton's bones, are drawn as segments. ``shapes`` is one
+    ``(m, 3, n)`` array, or a mapping from labels to such arrays: one row of panels each
+    (say, the direct fit above the robust one)."""
     plt = _pyplot()
+    rows = shapes if isinstance(shapes, Mapping) else {"reconstruction": shapes}
     Y = np.asarray(true_shapes)
-    X = np.asarray(align_shapes(shapes, true_shapes))
     Y = Y - Y.mean(axis=2, keepdims=True)
     frames = [f for f in frames if f < Y.shape[0]]
-    fig = plt.figure(figsize=(4 * len(frames), 4.4))
-    for col, f in enumerate(frames):
-        ax = fig.add_subplot(1, len(frames), col + 1, projection="3d")
-        ax.scatter(*Y[f], s=14, facecolors="none", edgecolors="tab:blue", label="truth")
-        ax.scatter(*X[f], s=10, marker="x", color="tab:red", label="reconstruction")
-        for a, b in [] if edges is None else np.asarray(edges):
-            ax.plot(*Y[f][:, [a, b]], color="tab:blue", lw=1)
-            ax.plot(*X[f][:, [a, b]], color="tab:red", lw=1)
-        ax.set_title(f"frame {f}")
-        ax.set_box_aspect((1, 1, 1))
-        lim = np.abs(Y[f]).max() * 1.1
-        ax.set(xlim=(-lim, lim), ylim=(-lim, lim), zlim=(-lim, lim))
-        ax.tick_params(labelsize=6)
-    fig.axes[0].legend(loc="upper left", fontsize=8)
+    fig = plt.figure(figsize=(4 * len(frames), 4.4 * len(rows)))
+    for row, (label, rec) in enumerate(rows.items()):
+        X = np.asarray(align_shapes(rec, true_shapes))
+        for col, f in enumerate(frames):
+            ax = fig.add_subplot(len(rows), len(frames), row * len(frames) + col + 1, projection="3d")
+            ax.scatter(*Y[f], s=14, facecolors="none", edgecolors="tab:blue", label="truth")
+            ax.scatter(*X[f], s=10, marker="x", color="tab:red", label=label)
+            for a, b in [] if edges is None else np.asarray(edges):
+                ax.plot(*Y[f][:, [a, b]], color="tab:blue", lw=1)
+                ax.plot(*X[f][:, [a, b]], color="tab:red", lw=1)
+            ax.set_title(f"{label}: frame {f}" if len(rows) > 1 else f"frame {f}")
+            ax.set_box_aspect((1, 1, 1))
+            lim = np.abs(Y[f]).max() * 1.1
+            ax.set(xlim=(-lim, lim), ylim=(-lim, lim), zlim=(-lim, lim))
+            ax.tick_params(labelsize=6)
+            if col == 0:
+                ax.legend(loc="upper left", fontsize=8)
     return _save(fig, path, title)
 
 
