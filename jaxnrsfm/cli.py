@@ -65,7 +65,7 @@ def _listen_to_compilations() -> None:
     jax.monitoring.register_event_listener(on_event)
 
 
-@app.command()
+@app.command(epilog="Example: jaxnrsfm demo --noise 3 --outliers 0.2 --out cube.png")
 def demo(
     out: Annotated[Path, typer.Option(help="Where to write the figure (PNG).")] = Path("demo_frames.png"),
     seed: Annotated[int, typer.Option(help="PRNG seed of the synthetic cube.")] = 0,
@@ -212,7 +212,11 @@ class _InputError(ValueError):
     """Bad input found by the command itself; reported like the library's ValueErrors."""
 
 
-@app.command(help=_RECONSTRUCT_HELP)
+@app.command(
+    help=_RECONSTRUCT_HELP,
+    epilog="Examples: jaxnrsfm reconstruct ../shared/data/akhter/drink.mat --out drink.npz --export drink.wrl  |  "
+    "jaxnrsfm reconstruct tracks.csv --k 3 --method huber --no-refine",
+)
 def reconstruct(
     tracks_file: Annotated[
         Path, typer.Argument(metavar="INPUT", help="Tracks: .npz, .mat or .csv.", show_default=False)
@@ -388,7 +392,7 @@ def _status_name(status) -> str:
     return next(name for name, item in Status._name_to_item.items() if bool(status == item))
 
 
-@app.command()
+@app.command(epilog="Example: jaxnrsfm sweep --noise 0 --noise 2 --outliers 0.1 --trials 20 --out results/sweep")
 def sweep(
     noise: Annotated[list[float] | None, typer.Option(help="Noise level sigma; repeat for several [1..5].")] = None,
     outliers: Annotated[list[float] | None, typer.Option(help="Outlier ratio; repeat for several [0.05, 0.2].")] = None,

@@ -248,3 +248,9 @@ def test_sweep_from_noise_free_creates_folder(tmp_path):
 def test_sweep_rejects_bad_options(tmp_path):
     result = CliRunner().invoke(app, ["sweep", "--method", "magic", "--out", str(tmp_path)])
     assert result.exit_code == 1 and "unknown method 'magic'" in result.output and "Traceback" not in result.output
+
+
+@pytest.mark.parametrize("command", ["demo", "reconstruct", "sweep"])
+def test_help_shows_an_example(command):
+    result = CliRunner().invoke(app, [command, "--help"], terminal_width=200)
+    assert result.exit_code == 0 and f"jaxnrsfm {command}" in result.output and "Example" in result.output
