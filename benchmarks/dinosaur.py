@@ -50,7 +50,7 @@ def main():
     inl = visible & ~outliers
     if args.k is None:
         args.k = nr.choose_k(tracks.W, tracks.visible)
-    direct = nr.reconstruct(W, visible, k=args.k, method="direct", refine=False)
+    direct = nr.reconstruct(W, visible, k=args.k, method="direct", shapes="upgrade")
     print(
         f"dinosaur {W.shape[0] // 2} frames x {W.shape[1]} points, k={args.k} (rank {3 * args.k + 1}), "
         f"{args.ratio:.0%} outliers of {args.magnitude[0]:g}-{args.magnitude[1]:g} px, {args.trials} trials; "
@@ -58,20 +58,18 @@ def main():
         f"{float(nr.mean_reprojection_error(W, direct.W_hat, visible)):.3f}"
     )
     # The status judges the Euclidean shapes too: those of the paper's upgrade
-    # (refine=False, what this 2-D comparison runs, fast) have implausible depth on the
+    # (shapes="upgrade", what this 2-D comparison runs, fast) have implausible depth on the
     # dinosaur; the default shape step's do not, but takes a minute a trial here.
-    print("ok: status success; impl.: Status.implausible (the paper's upgrade, refine=False); other: any other")
+    print("ok: status success; impl.: Status.implausible (the paper's upgrade, shapes='upgrade'); other: any other")
     print(
         f"{'method':>10} {'mean err':>9} {'(min..max)':>15} {'precision':>9} {'recall':>7} "
         f"{'ok':>4} {'impl.':>5} {'other':>5} {'s/trial':>8}"
     )
     for method in args.methods:
         t0 = time.perf_counter()
-        # Reprojection errors only: the shape step (refine) does not change W_hat.
-        options = nr.Options(refine=False)
-        rec = nr.reconstruct_batch(
-            Wo, outliers=outliers if method == "oracle" else None, k=args.k, method=method, options=options
-        )
+        # Reprojection errors only: the rotation and shape steps do not change W_hat.
+        strategy = nr.Oracle(outliers) if method == "oracle" else method
+        rec = nr.reconstruct_batch(Wo, k=args.k, method=strategy, shapes="upgrade")
         rec = jax.block_until_ready(rec)
         elapsed = (time.perf_counter() - t0) / args.trials
         err = np.asarray(jax.vmap(nr.mean_reprojection_error, (None, 0, 0))(W, rec.W_hat, inl))

@@ -51,8 +51,8 @@ def main():
         huber = method["method"] == "huber"
 
         def loss(W, delta, seq=seq, method=method, huber=huber):
-            extra = {"delta": delta} if huber else {}
-            rec = nr.reconstruct(W, seq.visible, k=K, **method, **extra)
+            strategy = nr.Huber(delta=delta) if huber else method["method"]
+            rec = nr.reconstruct(W, seq.visible, k=K, method=strategy)
             inl = seq.visible & ~seq.outliers
             return nr.e3d(rec.shapes, seq.shapes) + nr.rms_error(seq.W_clean, rec.W_hat, inl)
 

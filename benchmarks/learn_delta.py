@@ -33,7 +33,7 @@ def trials(seed, count, frames, noise, outliers):
 
 
 def error(delta, seq):
-    rec = nr.reconstruct(seq.W, seq.visible, k=K, method="huber", delta=delta)
+    rec = nr.reconstruct(seq.W, seq.visible, k=K, method=nr.Huber(delta=delta))
     return nr.rms_error(seq.W_clean, rec.W_hat, seq.visible & ~seq.outliers)
 
 

@@ -32,7 +32,6 @@ sys.path.insert(0, os.path.dirname(__file__))
 import numpy_wang  # noqa: E402
 
 K = 4
-PAPER = nr.Options(refine=False)
 """The robust factorization and the metric upgrade: the 2-D pipeline whose inliers (c) reproduces."""
 
 
@@ -53,10 +52,10 @@ def main(args) -> None:
     )
 
     def library(strategy):
-        return lambda: nr.reconstruct_batch(W, visible, k=K, method="wang", strategy=strategy, options=PAPER)
+        return lambda: nr.reconstruct_batch(W, visible, k=K, method="wang", shapes="upgrade", strategy=strategy)
 
     def loop():
-        return [nr.reconstruct(W[t], visible[t], k=K, method="wang", refine=False) for t in range(T)]
+        return [nr.reconstruct(W[t], visible[t], k=K, method="wang", shapes="upgrade") for t in range(T)]
 
     runs = {}
     cases = [(f"(a) {s}", library(s)) for s in nr.batch.STRATEGIES] + [("(b) loop", loop)]

@@ -30,9 +30,6 @@ from .metrics import (
     statistical_floor as statistical_floor,
 )
 from .pipeline import (
-    Options as Options,
-)
-from .pipeline import (
     Reconstruction as Reconstruction,
 )
 from .pipeline import (
@@ -42,7 +39,22 @@ from .pipeline import (
     reconstruct_prepared as reconstruct_prepared,
 )
 from .refine import nuclear_shapes as nuclear_shapes
-from .refine import refine_upgrade as refine_upgrade
+from .stages import L1 as L1
+from .stages import Direct as Direct
+from .stages import HighRankRotations as HighRankRotations
+from .stages import Huber as Huber
+from .stages import Huynh as Huynh
+from .stages import KeKanade as KeKanade
+from .stages import MaskedALS as MaskedALS
+from .stages import NuclearShapes as NuclearShapes
+from .stages import Oracle as Oracle
+from .stages import OutlierStrategy as OutlierStrategy
+from .stages import RotationRecovery as RotationRecovery
+from .stages import ShapeStep as ShapeStep
+from .stages import TraceNormRotations as TraceNormRotations
+from .stages import UpgradeRotations as UpgradeRotations
+from .stages import UpgradeShapes as UpgradeShapes
+from .stages import Wang as Wang
 from .status import Status as Status
 from .synthetic import (
     SyntheticSequence as SyntheticSequence,

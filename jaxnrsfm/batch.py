@@ -20,7 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .pipeline import Options, Reconstruction, reconstruct_prepared
+from .pipeline import Reconstruction, check_stages, reconstruct_prepared, resolve_stages
+from .stages import MaskedALS, OutlierStrategy, RotationRecovery, ShapeStep
 from .tracks import prepare_tracks
 
 STRATEGIES = ("map", "vmap", "loop")
@@ -31,15 +32,18 @@ def reconstruct_batch(
     visible: ArrayLike | None = None,
     *,
     k: int,
-    method: str = "wang",
-    outliers: ArrayLike | None = None,
+    method: "str | OutlierStrategy" = "wang",
+    rotations: "str | RotationRecovery | None" = None,
+    shapes: "str | ShapeStep" = "nuclear",
+    solver: MaskedALS | None = None,
     strategy: Literal["map", "vmap", "loop"] = "loop",
-    options: Options | None = None,
 ) -> Reconstruction:
     """:func:`~jaxnrsfm.reconstruct` for ``T`` sequences of equal size: ``W`` is
-    ``(T, 2m, n)``, ``visible`` and ``outliers`` ``(T, m, n)``. Every trial is validated
-    (before anything is compiled) like a single sequence; the result has a leading ``T``
-    axis and a ``status`` per trial, so a trial that fails does not stop the others."""
+    ``(T, 2m, n)``, ``visible`` ``(T, m, n)``; the stages as for one sequence, except that
+    their array fields are per trial, with a leading ``T`` axis (``Oracle(outliers)`` with
+    ``outliers`` ``(T, m, n)``). Every trial is validated (before anything is compiled)
+    like a single sequence; the result has a leading ``T`` axis and a ``status`` per
+    trial, so a trial that fails does not stop the others."""
     if strategy not in STRATEGIES:
         raise ValueError(f"unknown strategy {strategy!r}; choose one of {', '.join(STRATEGIES)}")
     W = np.asarray(W) if not isinstance(W, jax.Array) else W
@@ -52,34 +56,40 @@ def reconstruct_batch(
     ]
     W0 = jnp.stack([w for w, _ in prepared])
     vis = jnp.stack([v for _, v in prepared])
-    if outliers is not None:
-        outliers = jnp.asarray(outliers, bool)
-        if outliers.shape != vis.shape:
-            raise ValueError(f"outliers must have shape (T, m, n) = {vis.shape}; got {outliers.shape}")
+    trials = len(prepared)
+    # The stages' array fields carry one value per trial; the rest is shared by all.
+    dynamic, static = eqx.partition(resolve_stages(method, rotations, shapes, solver), eqx.is_array)
+    for leaf in jax.tree.leaves(dynamic):
+        if leaf.shape[:1] != (trials,):
+            raise ValueError(f"a stage's array field must have a leading axis of {trials} trials; got {leaf.shape}")
+    check_stages(eqx.combine(jax.tree.map(lambda x: x[0], dynamic), static), vis.shape[1:], k)
     complete = bool(vis.all())
-    options = Options() if options is None else options
-    statics = dict(k=k, method=method, complete=complete, options=options)
+    statics = dict(k=k, complete=complete)
     if strategy == "loop":
-        trials = [
-            reconstruct_prepared(W0[t], vis[t], None if outliers is None else outliers[t], **statics)
-            for t in range(W0.shape[0])
+        results = [
+            reconstruct_prepared(
+                W0[t], vis[t], **eqx.combine(jax.tree.map(lambda x, t=t: x[t], dynamic), static), **statics
+            )
+            for t in range(trials)
         ]
-        return jax.tree.map(lambda *xs: jnp.stack(xs), *trials)
-    return _mapped(W0, vis, outliers, vectorize=strategy == "vmap", **statics)
+        return jax.tree.map(lambda *xs: jnp.stack(xs), *results)
+    return _mapped(W0, vis, dynamic, static, vectorize=strategy == "vmap", **statics)
 
 
 @eqx.filter_jit
 def _mapped(
     W: Float[Array, "T 2m n"],
     visible: Bool[Array, "T m n"],
-    outliers: Bool[Array, "T m n"] | None,
+    dynamic: dict,
+    static: dict,
     *,
     vectorize: bool,
     **statics,
 ) -> Reconstruction:
     def run(args):
-        return reconstruct_prepared(*args, **statics)
+        W, visible, dynamic = args
+        return reconstruct_prepared(W, visible, **eqx.combine(dynamic, static), **statics)
 
     if vectorize:
-        return jax.vmap(run)((W, visible, outliers))
-    return jax.lax.map(run, (W, visible, outliers))
+        return jax.vmap(run)((W, visible, dynamic))
+    return jax.lax.map(run, (W, visible, dynamic))

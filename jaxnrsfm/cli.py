@@ -91,7 +91,7 @@ def demo(
 
     def run(seq, **kwargs):
         t0 = time.perf_counter()
-        rec = jax.block_until_ready(nr.reconstruct(seq.W, seq.visible, k=k, refine=False, **kwargs))
+        rec = jax.block_until_ready(nr.reconstruct(seq.W, seq.visible, k=k, shapes="upgrade", **kwargs))
         return rec, time.perf_counter() - t0
 
     def errors(seq, rec):
@@ -111,7 +111,7 @@ def demo(
         table.add_column(col, justify="left" if col in ("method", "status") else "right", no_wrap=col != "status")
     shown = {}
     for method, label in METHOD_LABELS.items():
-        rec, elapsed = run(seq, method=method, outliers=seq.outliers if method == "oracle" else None)
+        rec, elapsed = run(seq, method=nr.Oracle(seq.outliers) if method == "oracle" else method)
         precision, recall = nr.outlier_precision_recall(seq.visible & ~rec.inliers, seq.outliers, seq.visible)
         rms, e3d = errors(seq, rec)
         table.add_row(
@@ -212,10 +212,14 @@ class _InputError(ValueError):
     """Bad input found by the command itself; reported like the library's ValueErrors."""
 
 
+# The help's panels: one per stage.
+_OUT, _ROT, _SHAPE, _SOLVER = "Outlier strategy", "Rotation recovery", "Shape step", "Missing-data solver"
+
+
 @app.command(
     help=_RECONSTRUCT_HELP,
     epilog="Examples: jaxnrsfm reconstruct ../shared/data/akhter/drink.mat --out drink.npz --export drink.wrl  |  "
-    "jaxnrsfm reconstruct tracks.csv --k 3 --method huber --no-refine",
+    "jaxnrsfm reconstruct tracks.csv --k 3 --method huber --delta 2 --shapes upgrade",
 )
 def reconstruct(
     tracks_file: Annotated[
@@ -228,15 +232,89 @@ def reconstruct(
         ),
     ] = None,
     method: Annotated[
-        str, typer.Option(help="wang, direct, huynh, ke_kanade, huber or l1 (see jaxnrsfm.reconstruct).")
+        str, typer.Option(help="Outlier strategy: wang, direct, huynh, ke_kanade, huber or l1.", rich_help_panel=_OUT)
     ] = "wang",
+    threshold: Annotated[
+        float | None,
+        typer.Option(
+            help="wang, ke_kanade, huber, l1: outlier threshold in robust scales [the residual model's boundary].",
+            show_default=False,
+            rich_help_panel=_OUT,
+        ),
+    ] = None,
+    passes: Annotated[
+        int | None, typer.Option(help="wang: minimum rejection passes [3].", show_default=False, rich_help_panel=_OUT)
+    ] = None,
+    unweighted: Annotated[
+        bool, typer.Option("--unweighted", help="wang: skip step 5's weighted fit.", rich_help_panel=_OUT)
+    ] = False,
+    iterations: Annotated[
+        int | None, typer.Option(help="huynh: correction iterations [10].", show_default=False, rich_help_panel=_OUT)
+    ] = None,
+    delta: Annotated[
+        float | None,
+        typer.Option(help="huber: the loss's kink in robust scales [1.345].", show_default=False, rich_help_panel=_OUT),
+    ] = None,
+    rotations: Annotated[
+        str | None,
+        typer.Option(
+            help="Rotation recovery: high_rank, upgrade or trace_norm [the shape step's: high_rank for nuclear, "
+            "upgrade for upgrade].",
+            show_default=False,
+            rich_help_panel=_ROT,
+        ),
+    ] = None,
+    rotation_rank: Annotated[
+        int | None,
+        typer.Option(
+            help="high_rank: rank of the factorization [every direction of the tracks above the noise].",
+            show_default=False,
+            rich_help_panel=_ROT,
+        ),
+    ] = None,
+    starts: Annotated[
+        int | None, typer.Option(help="high_rank: random starts [16].", show_default=False, rich_help_panel=_ROT)
+    ] = None,
+    refills: Annotated[
+        int | None,
+        typer.Option(help="high_rank: refills of unobserved entries [2].", show_default=False, rich_help_panel=_ROT),
+    ] = None,
+    trace_norm_weight: Annotated[
+        float | None,
+        typer.Option(help="trace_norm: weight of the trace norm [0.1].", show_default=False, rich_help_panel=_ROT),
+    ] = None,
+    shapes: Annotated[
+        str,
+        typer.Option(
+            help="Shape step: nuclear (Dai et al.'s nuclear-norm shapes) or upgrade (the paper's H^-1 S).",
+            rich_help_panel=_SHAPE,
+        ),
+    ] = "nuclear",
+    shape_steps: Annotated[
+        int | None,
+        typer.Option(
+            help="nuclear: ADMM iterations (also of high_rank's refills) [500].",
+            show_default=False,
+            rich_help_panel=_SHAPE,
+        ),
+    ] = None,
+    shape_rho: Annotated[
+        float | None, typer.Option(help="nuclear: ADMM penalty [1.0].", show_default=False, rich_help_panel=_SHAPE)
+    ] = None,
+    max_steps: Annotated[
+        int, typer.Option(help="Missing-data solver: most ALS sweeps.", rich_help_panel=_SOLVER)
+    ] = 500,
+    rtol: Annotated[float, typer.Option(help="Missing-data solver: ALS tolerance.", rich_help_panel=_SOLVER)] = 1e-10,
+    varpro: Annotated[
+        str,
+        typer.Option(
+            help="Missing-data solver: finish least-squares fits by VarPro: never, stalled or always.",
+            rich_help_panel=_SOLVER,
+        ),
+    ] = "never",
     form: Annotated[
         str, typer.Option(help="augmented (rank 3k+1) or registered (rank 3k; direct only).")
     ] = "augmented",
-    threshold: Annotated[
-        float | None,
-        typer.Option(help="Outlier threshold of the robust methods, in robust scales (default: chosen from the data)."),
-    ] = None,
     out: Annotated[
         Path | None,
         typer.Option(help="Write W_hat, inliers, shapes, rotations, weights, bases, translations to this .npz."),
@@ -253,22 +331,10 @@ def reconstruct(
         str | None, typer.Option(help="Use only these frames: a Python slice START:STOP[:STEP], e.g. 0:100.")
     ] = None,
     fps: Annotated[float, typer.Option(help="Frame rate of the VRML animation.")] = 25.0,
-    refine: Annotated[
-        bool,
-        typer.Option(
-            help="Nuclear-norm shapes given the rotations (Dai et al.); --no-refine keeps the metric upgrade's shapes."
-        ),
-    ] = True,
-    rotation_rank: Annotated[
-        int | None,
-        typer.Option(
-            help="With --refine: rank of the factorization whose rotation constraints give the rotations; "
-            "0 keeps the upgrade's rotations; default: every direction of the tracks above the noise."
-        ),
-    ] = None,
     float32: Annotated[bool, typer.Option("--float32", help="Compute in float32 instead of float64.")] = False,
 ) -> None:
     _setup(float32)
+    import equinox as eqx
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -287,13 +353,32 @@ def reconstruct(
             export_format(export)
         if not fps > 0:
             raise _InputError(f"--fps must be positive; got {fps}")
+        stages = _stages(
+            method,
+            {
+                "threshold": ("--threshold", threshold),
+                "passes": ("--passes", passes),
+                "weighted": ("--unweighted", False if unweighted else None),
+                "iterations": ("--iterations", iterations),
+                "delta": ("--delta", delta),
+            },
+            rotations,
+            {
+                "rank": ("--rotation-rank", rotation_rank),
+                "starts": ("--starts", starts),
+                "refills": ("--refills", refills),
+                "weight": ("--trace-norm-weight", trace_norm_weight),
+            },
+            shapes,
+            {"steps": ("--shape-steps", shape_steps), "rho": ("--shape-rho", shape_rho)},
+            nr.MaskedALS(max_steps, rtol, varpro),
+        )
         tracks = _read_tracks(tracks_file, var)
         W, visible, true_shapes = _select_frames(tracks, frames)
         frame = tracks.frame
         W = W.astype(np.float32 if float32 else np.float64)  # an explicit float64 under float32 would warn
         t0, compiled0, hits0 = time.perf_counter(), _compiled["seconds"], _compiled["cache_hits"]
-        options = dict(method=method, form=form, threshold=threshold, refine=refine, rotation_rank=rotation_rank)
-        rec = jax.block_until_ready(nr.reconstruct(W, visible, k=k, **options))
+        rec = jax.block_until_ready(nr.reconstruct(W, visible, k=k, form=form, **stages))
         elapsed = time.perf_counter() - t0
         compile_s, cache_hits = _compiled["seconds"] - compiled0, _compiled["cache_hits"] - hits0
         arrays = {name: np.asarray(getattr(rec, name)) for name in names}
@@ -313,6 +398,7 @@ def reconstruct(
         "k": int(rec.weights.shape[1]),
         "method": method,
         "form": form,
+        "stages": {name: eqx.tree_pformat(stage, width=10_000) for name, stage in stages.items()},
         "dtype": str(W.dtype),
         "mean_reprojection_error": _number(nr.mean_reprojection_error(Wj, rec.W_hat, rec.inliers)),
         "rms_reprojection_error": _number(nr.rms_error(Wj, rec.W_hat, rec.inliers)),
@@ -331,6 +417,42 @@ def reconstruct(
         "export_files": len(exported),
     }
     typer.echo(json.dumps(summary, indent=2))
+
+
+def _build(table: dict, name: str, options: dict, option: str):
+    """The stage ``table[name]`` (named by the command-line ``option``) with the ``options``
+    given (``{field: (flag, value)}``, ``None`` = not given); a flag that is not one of its
+    fields is an error."""
+    import dataclasses
+
+    if name not in table:
+        raise _InputError(f"unknown {option.lstrip('-')} {name!r}; choose one of {', '.join(table)}")
+    fields = {f.name for f in dataclasses.fields(table[name])}
+    given = {field: flag_value for field, flag_value in options.items() if flag_value[1] is not None}
+    if wrong := [flag for field, (flag, _) in given.items() if field not in fields]:
+        raise _InputError(f"{wrong[0]} does not apply to {option} {name}")
+    return table[name](**{field: value for field, (_, value) in given.items()})
+
+
+def _stages(method, method_options, rotations, rotation_options, shapes, shape_options, solver) -> dict:
+    """The stage instances that the command-line options name, before anything is compiled."""
+    from .stages import ROTATIONS, SHAPES, STRATEGIES
+
+    if method == "oracle":
+        raise _InputError("--method oracle needs the true outliers, which a tracks file does not have")
+    shape_step = _build(SHAPES, shapes, shape_options, "--shapes")
+    if rotations is None:
+        default = type(shape_step.default_rotations())
+        rotations = next(name for name, cls in ROTATIONS.items() if cls is default)
+    # The refills of the high-rank rotations solve the shape step's ADMM: --shape-steps sets both.
+    if rotations == "high_rank" and shapes == "nuclear":
+        rotation_options = {**rotation_options, "steps": shape_options["steps"]}
+    return dict(
+        method=_build(STRATEGIES, method, method_options, "--method"),
+        rotations=_build(ROTATIONS, rotations, rotation_options, "--rotations"),
+        shapes=shape_step,
+        solver=solver,
+    )
 
 
 def _fail(err: BaseException) -> NoReturn:
@@ -427,7 +549,7 @@ def sweep(
 
     from . import robust
     from .metrics import entry_errors
-    from .pipeline import Options, reconstruct_prepared
+    from .pipeline import reconstruct as reconstruct_tracks
     from .plot import plot_residuals, plot_sweep
     from .sweep import run_sweep
     from .synthetic import deformable_cube
@@ -443,7 +565,7 @@ def sweep(
     sigma, ratio = sorted(noise)[len(noise) // 2], max(outliers)
     seq = deformable_cube(jax.random.key(seed), n_frames=frames, noise=sigma, outlier_ratio=ratio)
     W0 = jax.numpy.where(jax.numpy.isnan(seq.W), 0.0, seq.W)
-    rec = reconstruct_prepared(W0, seq.visible, k=k, method="wang", options=Options(refine=False))
+    rec = reconstruct_tracks(W0, seq.visible, k=k, method="wang", shapes="upgrade")
     _, model = robust.classify(W0, rec.W_hat, seq.visible)
     lengths = entry_errors(W0, seq.W_clean)
     plot_residuals(
@@ -472,10 +594,10 @@ def sweep(
 
 
 def _check_sweep(noise, outliers, missing, trials, methods, k, frames, out) -> None:
-    from .pipeline import METHODS
+    from .stages import STRATEGIES
 
-    if unknown := [m for m in methods if m not in METHODS]:
-        raise ValueError(f"unknown method {unknown[0]!r}; choose from {', '.join(METHODS)}")
+    if unknown := [m for m in methods if m not in STRATEGIES]:
+        raise ValueError(f"unknown method {unknown[0]!r}; choose from {', '.join(STRATEGIES)}")
     if trials < 1 or k < 1 or frames < 2 or not noise or not outliers:
         raise ValueError("trials, k must be >= 1, frames >= 2, and at least one noise level and outlier ratio given")
     if any(s < 0 for s in noise) or any(not 0 <= r < 1 for r in outliers) or not 0 <= missing < 1:

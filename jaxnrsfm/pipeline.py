@@ -1,8 +1,9 @@
 """The user entry point: tracks in, Euclidean reconstruction out.
 
-``reconstruct`` validates the tracks (before anything is compiled), then runs one
-jit-compiled pure pipeline: factorization -> metric upgrade -> per-frame structure and
-motion. One sequence per call; a batch is ``jax.vmap`` of the same call.
+``reconstruct`` validates the tracks and the stages (before anything is compiled), then
+runs one jit-compiled pure pipeline of the stages (:mod:`jaxnrsfm.stages`): the outlier
+strategy's low-rank fit -> metric upgrade -> rotation recovery -> shape step. One
+sequence per call; a batch is ``jax.vmap`` of the same call.
 """
 
 from typing import Literal
@@ -12,51 +13,26 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from . import residuals, robust
+from . import residuals
 from .choose import choose_k
-from .factorize import Factorization, factorize_prepared
+from .factorize import Factorization, centroids, finish
 from .metrics import entry_errors
-from .refine import refine_upgrade
+from .stages import (
+    ROTATIONS,
+    SHAPES,
+    Direct,
+    MaskedALS,
+    OutlierStrategy,
+    RotationRecovery,
+    ShapeStep,
+    outlier_strategy,
+)
 from .status import Status
 from .tracks import centred_spread, from_frames, prepare_tracks, row_mask, to_frames
 from .upgrade import Euclidean, metric_upgrade, split_translation
 
-METHODS = ("direct", "wang", "huynh", "ke_kanade", "huber", "l1", "oracle")
-"""Reconstruction strategies available to :func:`reconstruct`."""
 FORMS = ("augmented", "registered")
 """Factorization forms: rank ``3k + 1`` without registration, or rank ``3k`` registered."""
-
-
-class Options(eqx.Module):
-    """The methods' tuning knobs (Python scalars: static under jit). The defaults are
-    :func:`reconstruct`'s."""
-
-    threshold: float | None = None
-    """Outlier threshold, a multiple of the robust residual scale; ``None`` chooses it
-    from the data (:mod:`jaxnrsfm.residuals`)."""
-    passes: int = 3
-    """Minimum number of rejection passes of the robust algorithm (``wang``)."""
-    weighted: bool = True
-    """Step 5's weighted factorization of the inliers (``wang``)."""
-    iterations: int = 10
-    """Pseudo-observation iterations (``huynh``)."""
-    delta: float = 1.345
-    """Huber loss parameter in robust scales (``huber``); an array here is traced, and
-    differentiable."""
-    max_steps: int = 500
-    """Step budget of the missing-data solver."""
-    rtol: float = 1e-10
-    """Relative cost decrease below which the missing-data solver stops."""
-    refine: bool = True
-    """Replace the upgrade's shapes by the nuclear-norm shapes given its rotations
-    (:func:`jaxnrsfm.refine.refine_upgrade`, Dai et al.'s BMM shape step)."""
-    trace_norm: float = 0.0
-    """With ``refine``: 0 keeps the upgrade's rotations; > 0 takes them from Dai et al.'s
-    trace-norm relaxation with this weight (:func:`jaxnrsfm.refine.trace_norm_triple`)."""
-    rotation_rank: int | None = None
-    """With ``refine``: 0 keeps the upgrade's rotations; > 0 takes them from the rotation
-    constraints on a factorization of that rank (:func:`jaxnrsfm.refine.high_rank_rotations`),
-    ``None`` on the directions of the tracks above the noise (its rule)."""
 
 
 class Reconstruction(eqx.Module):
@@ -108,35 +84,6 @@ class Reconstruction(eqx.Module):
         data; with noise it also carries the Bregler model's stricter structure."""
         proj = jnp.einsum("iab,ibn->ian", self.rotations[:, :2], self.shapes)
         return from_frames(proj + self.translations[:, :, None])
-
-
-def _factorize(W, visible, outliers, *, k, method, form, complete, options: Options) -> Factorization:
-    augmented = form == "augmented"
-    rank = 3 * k + augmented
-    budget = dict(max_steps=options.max_steps, rtol=options.rtol)
-    if method == "direct":
-        return factorize_prepared(W, visible, rank=rank, register=not augmented, complete=complete, **budget)
-    if method == "wang":
-        return robust.wang(
-            W,
-            visible,
-            rank=rank,
-            complete=complete,
-            threshold=options.threshold,
-            passes=options.passes,
-            weighted=options.weighted,
-            **budget,
-        )
-    if method == "huynh":
-        return robust.huynh(W, visible, rank=rank, complete=complete, iterations=options.iterations, **budget)
-    if method == "ke_kanade":
-        return robust.ke_kanade(W, visible, rank=rank, complete=complete, threshold=options.threshold)
-    if method in ("huber", "l1"):
-        delta = options.delta if method == "huber" else None
-        return robust.huber(
-            W, visible, rank=rank, complete=complete, delta=delta, threshold=options.threshold, **budget
-        )
-    return robust.oracle(W, visible, outliers, rank=rank, **budget)
 
 
 MAX_REJECTED = 0.375
@@ -195,29 +142,32 @@ def implausible(
     return (depth > DEPTH_RATIO * jnp.maximum(plane, tiny)) | (misfit > REPROJECTION_RATIO * jnp.maximum(spread, tiny))
 
 
-BASELINES = ("huynh", "ke_kanade")
-"""The paper's baselines. Their fit uses every observed entry (corrected, or under the L1
-loss); the inliers they report are :func:`jaxnrsfm.robust.classify`'s, for comparison
-only. Their status (:func:`_status`) says whether *their* iteration converged to its own
-stopping rule, as their papers define them, and the result is finite and plausible; a
-residual-distribution test designed for the robust method says nothing about that."""
-
-DETECTING = ("wang", "huber", "l1")
-"""Methods whose status also judges their outlier detection (:func:`_status`): the paper's
-robust algorithm and the library's robust losses decide the inliers their fit relies on."""
-
-
-def _status(W, visible, fac: Factorization, eu: Euclidean, rank: int, method: str) -> Status:
+def status_of(
+    W: Float[Array, "2m n"],
+    visible: Bool[Array, "m n"],
+    fac: Factorization,
+    eu: Euclidean,
+    rank: int,
+    method: OutlierStrategy,
+) -> Status:
+    """The outcome of a reconstruction: the fit's convergence, the plausibility of the
+    Euclidean result, and whether the entries the fit relies on suffice -- the kept inliers,
+    or every observed entry for a strategy that fits them all (the paper's baselines,
+    ``OutlierStrategy.fits_every_entry``), whose status is then their own iteration's
+    convergence to its stopping rule, as their papers define them. A strategy that judges
+    its detection (``OutlierStrategy.judges_detection``: the robust algorithm and the robust
+    losses) also fails when it rejected more than it survives or its kept residuals do not
+    look like noise."""
     finite = jnp.all(jnp.isfinite(fac.W_hat)) & jnp.all(jnp.isfinite(eu.shapes))
     status = Status.where(fac.converged, Status.success, Status.not_converged)
     status = Status.where(implausible(eu.rotations, eu.shapes, eu.translations, fac.W_hat), Status.implausible, status)
     # Too few of the entries the fit relies on (the inliers it kept; every observed entry
     # for a baseline) to determine a frame's motion or a point's structure: the fit
     # cannot be trusted.
-    used = visible if method in BASELINES else fac.inliers
+    used = visible if method.fits_every_entry else fac.inliers
     starved = jnp.any(used.sum(1) < rank) | jnp.any(2 * used.sum(0) < rank)
     starved |= used.sum() < 0.5 * visible.sum()
-    if method in DETECTING:
+    if method.judges_detection:
         # More rejected than the method survives (the median scale breaks down at half),
         # or kept residuals that do not look like noise.
         starved |= used.sum() < (1 - MAX_REJECTED) * visible.sum()
@@ -233,30 +183,44 @@ def _status(W, visible, fac: Factorization, eu: Euclidean, rank: int, method: st
 def reconstruct_prepared(
     W: Float[Array, "2m n"],
     visible: Bool[Array, "m n"],
-    outliers: Bool[Array, "m n"] | None = None,
     *,
     k: int,
-    method: str = "wang",
-    form: str = "augmented",
+    method: OutlierStrategy,
+    rotations: RotationRecovery,
+    shapes: ShapeStep,
+    solver: MaskedALS,
+    form: Literal["augmented", "registered"] = "augmented",
     complete: bool = False,
-    options: Options | None = None,
 ) -> Reconstruction:
     """:func:`reconstruct` on tracks already checked by :func:`prepare_tracks` (zero-filled,
-    with their effective mask): the pure, jit-compiled pipeline that a batch vmaps."""
-    options = Options() if options is None else options
-    fac = _factorize(W, visible, outliers, k=k, method=method, form=form, complete=complete, options=options)
-    if form == "augmented":
-        M, S, t, _ = split_translation(fac.M, fac.S)
-    else:
-        M, S, t = fac.M, fac.S, fac.translations
-    eu = metric_upgrade(M, S, t, k)
-    if options.refine:
-        tracks = jnp.where(row_mask(fac.inliers), W, fac.W_hat)
-        # Known at trace time to have every entry: no mask, and no refills of the rotations.
-        observed = None if complete and method == "direct" else fac.inliers
-        eu = refine_upgrade(
-            eu, M, tracks, k, observed, trace_norm=options.trace_norm, rotation_rank=options.rotation_rank
+    with their effective mask) and stage instances already checked against them: the pure,
+    jit-compiled pipeline that a batch vmaps. ``complete`` (static) says every entry is
+    observed."""
+    rank = 3 * k + (form == "augmented")
+    if form == "registered":
+        # Eq. 8: each frame centred on its visible centroid, then a rank-3k fit.
+        t = centroids(W, visible)
+        fac = method(
+            jnp.where(row_mask(visible), W - t.reshape(-1)[:, None], 0.0),
+            visible,
+            rank=rank,
+            complete=complete,
+            solver=solver,
         )
+        fac = finish(W, fac.inliers, fac.M, fac.S, t, fac.steps, fac.converged)
+        M, S, t = fac.M, fac.S, fac.translations
+    else:
+        fac = method(W, visible, rank=rank, complete=complete, solver=solver)
+        M, S, t, _ = split_translation(fac.M, fac.S)
+    upgrade = metric_upgrade(M, S, t, k)
+    # The shapes explain the observed inliers, not the rank-3k+1 fit (with wang on the
+    # Akhter sequences e3D fell by 0.4--4%, drink 0.0384 from the fit, 0.0368 from the
+    # inliers); elsewhere the fit's values only place each frame's centroid.
+    frames = to_frames(jnp.where(row_mask(fac.inliers), W, fac.W_hat))
+    # Known at trace time to have every entry: no mask, and no refills of the rotations.
+    observed = None if complete and isinstance(method, Direct) else fac.inliers
+    R = rotations(frames - frames.mean(axis=2, keepdims=True), observed, k=k, upgrade=upgrade, M=M)
+    eu = shapes.euclidean(frames, R, observed, k=k, upgrade=upgrade)
     return Reconstruction(
         fac.W_hat,
         fac.inliers,
@@ -270,8 +234,52 @@ def reconstruct_prepared(
         fac.cost,
         eu.metric_residual,
         fac.steps,
-        _status(W, visible, fac, eu, M.shape[1] + (form == "augmented"), method),
+        status_of(W, visible, fac, eu, rank, method),
     )
+
+
+def _stage(value, table: dict, base: type, what: str):
+    # A stage given by its command-line name (default options) or as an instance.
+    if isinstance(value, base):
+        return value
+    if isinstance(value, str) and value in table:
+        return table[value]()
+    raise ValueError(f"unknown {what} {value!r}; choose one of {', '.join(table)} or a {base.__name__} instance")
+
+
+def resolve_stages(
+    method: "str | OutlierStrategy",
+    rotations: "str | RotationRecovery | None",
+    shapes: "str | ShapeStep",
+    solver: MaskedALS | None,
+    form: str = "augmented",
+) -> dict:
+    """The stage instances of a pipeline, from names or instances, checked against each
+    other (a ``ValueError``): the keyword arguments of :func:`reconstruct_prepared`.
+    ``rotations=None`` takes the shape step's
+    :meth:`~jaxnrsfm.stages.ShapeStep.default_rotations`."""
+    method = outlier_strategy(method)
+    shapes = _stage(shapes, SHAPES, ShapeStep, "shape step")
+    rotations = shapes.default_rotations() if rotations is None else rotations
+    rotations = _stage(rotations, ROTATIONS, RotationRecovery, "rotation recovery")
+    solver = MaskedALS() if solver is None else solver
+    if not isinstance(solver, MaskedALS):
+        raise ValueError(f"solver must be a MaskedALS instance; got {solver!r}")
+    if form not in FORMS:
+        raise ValueError(f"unknown form {form!r}; choose one of {', '.join(FORMS)}")
+    if form == "registered" and not isinstance(method, Direct):
+        raise ValueError(
+            f"form='registered' supports only the direct fit; {type(method).__name__} needs the augmented form"
+        )
+    shapes.check_rotations(rotations)
+    return dict(method=method, rotations=rotations, shapes=shapes, solver=solver, form=form)
+
+
+def check_stages(stages: dict, shape: tuple[int, int], k: int) -> None:
+    """Check the stages of :func:`resolve_stages` against tracks of ``shape = (m, n)`` with
+    ``k`` bases (a ``ValueError`` before anything is compiled)."""
+    stages["method"].check(shape)
+    stages["rotations"].check(shape, k)
 
 
 def reconstruct(
@@ -279,31 +287,25 @@ def reconstruct(
     visible: ArrayLike | None = None,
     *,
     k: int | None = None,
-    method: Literal["direct", "wang", "huynh", "ke_kanade", "huber", "l1", "oracle"] = "wang",
+    method: "str | OutlierStrategy" = "wang",
+    rotations: "str | RotationRecovery | None" = None,
+    shapes: "str | ShapeStep" = "nuclear",
+    solver: MaskedALS | None = None,
     form: Literal["augmented", "registered"] = "augmented",
-    outliers: ArrayLike | None = None,
-    threshold: float | None = None,
-    passes: int = 3,
-    weighted: bool = True,
-    iterations: int = 10,
-    delta: float = 1.345,
-    max_steps: int = 500,
-    rtol: float = 1e-10,
-    refine: bool = True,
-    trace_norm: float = 0.0,
-    rotation_rank: int | None = None,
 ) -> Reconstruction:
     """Reconstruct a nonrigid object from its tracks.
 
-    The defaults are the configuration measured best on real tracks
-    (``benchmarks/real_sequences.py``): ``k`` chosen from the tracks
-    (:func:`jaxnrsfm.choose_k` with ``robust=True``), the paper's robust algorithm
-    (``method="wang"``), rotations from the rotation constraints on a high-rank
-    factorization of the tracks (every direction above the noise,
-    :func:`jaxnrsfm.refine.high_rank_rotations`)
-    and the nuclear-norm shapes of Dai et al.'s BMM (``refine=True``). The paper's own
-    pipeline -- factorization and metric upgrade, shapes ``H^-1 S`` -- is
-    ``refine=False``.
+    A reconstruction is a composition of stages (:mod:`jaxnrsfm.stages`), each an
+    ``eqx.Module`` whose fields are its options: the outlier strategy's low-rank fit with
+    the missing-data solver, the metric upgrade, a rotation recovery and a shape step.
+    Each is given as an instance, or by name with its default options. The defaults are
+    the configuration measured best on real tracks (``benchmarks/real_sequences.py``):
+    ``k`` chosen from the tracks (:func:`jaxnrsfm.choose_k` with ``robust=True``), the
+    paper's robust algorithm (:class:`~jaxnrsfm.stages.Wang`), rotations from the rotation
+    constraints on a high-rank factorization of the tracks
+    (:class:`~jaxnrsfm.stages.HighRankRotations`) and Dai et al.'s nuclear-norm shapes
+    (:class:`~jaxnrsfm.stages.NuclearShapes`). The paper's own pipeline -- factorization
+    and metric upgrade, shapes ``H^-1 S`` -- is ``shapes="upgrade"``.
 
     **Arguments:**
 
@@ -312,82 +314,42 @@ def reconstruct(
     - `k`: number of shape bases (1 = rigid); ``None`` (the default) chooses it from the
       tracks, :func:`jaxnrsfm.choose_k` with ``robust=True`` (needs concrete tracks:
       under ``jit`` or ``vmap`` give ``k``).
-    - `method`: ``"wang"`` (the default) is the paper's robust algorithm (section 4.2,
-      :func:`jaxnrsfm.robust.wang`); ``"direct"`` fits every observed entry by least
-      squares (no outlier handling); ``"huynh"`` is Huynh et al.'s pseudo-observation
-      correction; ``"ke_kanade"`` is Ke & Kanade's L1 factorization by alternating
-      linear programs; ``"huber"`` and ``"l1"`` minimise the Huber or L1 loss of the
-      reprojection residuals with optimistix (:mod:`jaxnrsfm.objective`); ``"oracle"``
-      is least squares told the true ``outliers``.
+    - `method`: the outlier strategy (:class:`~jaxnrsfm.stages.OutlierStrategy`):
+      ``"wang"`` / ``Wang(...)`` (the default) is the paper's robust algorithm;
+      ``"direct"`` fits every observed entry by least squares; ``"huynh"`` is Huynh et
+      al.'s pseudo-observation correction; ``"ke_kanade"`` Ke & Kanade's L1 factorization
+      by alternating linear programs; ``"huber"`` and ``"l1"`` minimise the Huber or L1
+      loss of the reprojection residuals with optimistix; ``Oracle(outliers)`` is least
+      squares told the true outliers.
+    - `rotations`: the rotation recovery (:class:`~jaxnrsfm.stages.RotationRecovery`):
+      ``"high_rank"``, ``"upgrade"`` (the metric upgrade's own) or ``"trace_norm"``;
+      ``None`` (the default): the shape step's choice (high-rank for the nuclear-norm
+      shapes, the upgrade's for its own shapes).
+    - `shapes`: the shape step (:class:`~jaxnrsfm.stages.ShapeStep`): ``"nuclear"`` (the
+      default) or ``"upgrade"`` (the paper's ``H^-1 S``, with the upgrade's rotations only).
+    - `solver`: the missing-data solver, :class:`~jaxnrsfm.stages.MaskedALS` (its budget,
+      and whether VarPro finishes the least-squares fits).
     - `form`: ``"augmented"`` (the paper's rank-(3k+1) factorization, eq. 12, no
       registration; the default) or ``"registered"`` (rank 3k after centring each frame
-      on its visible centroid, eq. 8; ``method="direct"`` only).
-    - `outliers`: ``(m, n)`` true outlier mask, for ``method="oracle"`` only.
-    - `threshold`, `passes`, `weighted`: the robust algorithm's outlier threshold (a
-      multiple of the robust residual scale; ``None``, the default, picks it from the
-      data), minimum number of rejection passes and step-5 weighting.
-    - `iterations`: Huynh et al.'s correction iterations.
-    - `delta`: the Huber loss parameter, in robust residual scales (``method="huber"``).
-    - `max_steps`, `rtol`: budget of the missing-data solver.
-    - `refine`, `trace_norm`: recover the shapes by Dai et al.'s nuclear-norm step given
-      the rotations (:func:`jaxnrsfm.refine.refine_upgrade`; the default); ``trace_norm >
-      0`` takes the rotations from the trace-norm relaxation with that weight.
-      ``refine=False`` keeps the metric upgrade's rotations and shapes.
-    - `rotation_rank`: with ``refine``, the rank of the factorization of the tracks whose
-      rotation constraints give the rotations (:func:`jaxnrsfm.refine.high_rank_rotations`);
-      ``None`` (the default) takes every direction of the centred tracks that stands
-      above the noise (:func:`jaxnrsfm.refine.above_noise`); ``0`` keeps the metric
-      upgrade's rotations. At most ``min(2m, n - 1)``.
+      on its visible centroid, eq. 8; the direct fit only).
 
     **Returns:** a :class:`Reconstruction`; its ``status`` reports, per trial, a solver
-    that did not converge or more outliers than the data can lose.
+    that did not converge, more outliers than the data can lose, or implausible shapes.
 
     **Raises:** ``ValueError`` (before any compilation) for malformed tracks, an unknown
-    method or form, a ``k`` too large for the data, or bad method options.
+    stage or form, a ``k`` too large for the data, or options that do not suit the tracks.
     """
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     if form not in FORMS:
         raise ValueError(f"unknown form {form!r}; choose one of {', '.join(FORMS)}")
-    if form == "registered" and method != "direct":
-        raise ValueError(f"form='registered' supports only method='direct'; {method!r} needs the augmented form")
     if k is None:
         if isinstance(W, jax.core.Tracer) or isinstance(visible, jax.core.Tracer):
             raise ValueError("k=None chooses k from the tracks, which needs concrete arrays: under jit/vmap give k")
         k = choose_k(W, visible, robust=True)
     if not isinstance(k, int) or isinstance(k, bool) or k < 1:
         raise ValueError(f"k (the number of shape bases) must be a positive integer; got {k!r}")
-    if (method == "oracle") != (outliers is not None):
-        raise ValueError("method='oracle' needs the true `outliers` mask, and only it takes one")
-    if not isinstance(delta, jax.core.Tracer) and not delta > 0:
-        raise ValueError(f"the Huber parameter delta must be > 0; got {delta}")
-    if not (threshold is None or threshold > 0) or passes < 1 or iterations < 1:
-        raise ValueError(f"threshold must be > 0 and passes, iterations >= 1; got {threshold}, {passes}, {iterations}")
     rank = 3 * k + (form == "augmented")
     W0, vis = prepare_tracks(W, visible, rank=rank, rank_name=f"k={k} ({form} rank {rank})")
-    if outliers is not None:
-        outliers = jnp.asarray(outliers, dtype=bool)
-        if outliers.shape != vis.shape:
-            raise ValueError(f"outliers must have shape (m, n) = {vis.shape}; got {outliers.shape}")
+    stages = resolve_stages(method, rotations, shapes, solver, form)
+    check_stages(stages, vis.shape, k)
     complete = not isinstance(vis, jax.core.Tracer) and bool(vis.all())
-    if not trace_norm >= 0:
-        raise ValueError(f"trace_norm must be >= 0; got {trace_norm}")
-    if rotation_rank is None and not (refine and not trace_norm):
-        rotation_rank = 0  # the default rule applies to refine's own rotations only
-    if rotation_rank is not None and (
-        not isinstance(rotation_rank, int) or isinstance(rotation_rank, bool) or rotation_rank < 0
-    ):
-        raise ValueError(f"rotation_rank must be None or a non-negative integer; got {rotation_rank!r}")
-    if rotation_rank and not refine:
-        raise ValueError("rotation_rank is used by refine=True only")
-    if rotation_rank and trace_norm > 0:
-        raise ValueError("choose one rotation source: trace_norm > 0 or rotation_rank > 0, not both")
-    centred_rank = min(W0.shape[0], W0.shape[1] - 1)
-    if (rotation_rank or 0) > centred_rank:
-        raise ValueError(
-            f"rotation_rank={rotation_rank} exceeds the rank of the centred tracks, min(2m, n - 1) = {centred_rank}"
-        )
-    options = Options(
-        threshold, passes, weighted, iterations, delta, max_steps, rtol, refine, trace_norm, rotation_rank
-    )
-    return reconstruct_prepared(W0, vis, outliers, k=k, method=method, form=form, complete=complete, options=options)
+    return reconstruct_prepared(W0, vis, k=k, complete=complete, **stages)

@@ -46,15 +46,7 @@ from jaxtyping import Array, Bool, Float
 
 from .linalg import truncated_svd
 from .tracks import from_frames, to_frames
-from .upgrade import (
-    Euclidean,
-    _canonical_bases,
-    _canonical_world,
-    flip_frames,
-    frame_signs,
-    nearest_rotations,
-    rotation_triple,
-)
+from .upgrade import flip_frames, frame_signs, nearest_rotations, rotation_triple
 
 
 def _svt(X: Float[Array, "m p"], tau: Float[Array, ""]) -> Float[Array, "m p"]:
@@ -268,76 +260,3 @@ def high_rank_rotations(
     # Every entry observed (a robust method that rejected nothing): a refill changes nothing.
     # Skipped then (under vmap, where the cond becomes a select, both run).
     return jax.lax.cond(jnp.all(observed), lambda R: R, lambda R: jax.lax.fori_loop(0, refills, refill, R), R)
-
-
-def refine_upgrade(
-    eu: Euclidean,
-    M: Float[Array, "2m 3k"],
-    tracks: Float[Array, "2m n"],
-    k: int,
-    observed: Bool[Array, "m n"] | None = None,
-    *,
-    trace_norm: float = 0.0,
-    rotation_rank: int | None = 0,
-    steps: int = 500,
-) -> Euclidean:
-    """Replace the shapes of a metric upgrade by BMM's nuclear-norm shapes (see module).
-
-    **Arguments:**
-
-    - `eu`: the result of :func:`jaxnrsfm.metric_upgrade` on the motion ``M``.
-    - `M`: the (centred) affine motion matrix the upgrade was computed from.
-    - `tracks`: complete tracks to reconstruct: the observed inliers, and the
-      factorization's fitted values where an entry is missing or rejected (what
-      :func:`jaxnrsfm.reconstruct` passes). The observed values, not the rank-``3k + 1``
-      fit, are what the shapes must explain: with ``method="wang"`` on the Akhter
-      sequences e3D fell by 0.4--4% (drink 0.0384 from the fit, 0.0368 from the inliers).
-    - `k`: number of shape bases of the returned ``weights``/``bases``.
-    - `observed`: optional ``(m, n)`` mask of the observed inliers. Elsewhere the shapes
-      are not tied to ``tracks`` (its values there only place the frame's centroid) and
-      :func:`high_rank_rotations` refills them; default: all observed.
-    - `trace_norm`: 0 keeps ``eu``'s rotations; a positive value takes the rotations from
-      :func:`trace_norm_triple` with that weight instead.
-    - `rotation_rank`: 0 keeps ``eu``'s rotations; a positive value takes them from
-      :func:`high_rank_rotations` at that rank instead, ``None`` at the rank of its rule
-      (every direction above the noise, at least ``3k``); not with ``trace_norm``.
-    - `steps`: ADMM iterations of the shape step.
-
-    **Returns:** a :class:`~jaxnrsfm.upgrade.Euclidean` in the same gauge as ``eu`` (world
-    frame of the first camera, centred shapes). The shapes reproject exactly onto the
-    observed ``tracks``: ``rotations[i, :2] @ shapes[i] + translations[i] == tracks[i]``,
-    with the translations taken from ``tracks``' centroids (not from the augmented
-    factorization's ones row, which is undefined when the tracks are already centred).
-    The shapes are NOT exactly rank ``k``: ``weights @ bases`` is their best rank-``k``
-    approximation (principal shapes), and ``metric_residual`` is that approximation's
-    relative reprojection misfit on the observed entries.
-    """
-    frames = to_frames(tracks)
-    translations = frames.mean(axis=2)
-    centred = frames - translations[:, :, None]
-    if trace_norm > 0:
-        # The data dependency on eu orders these LAPACK calls after the upgrade's: two
-        # independent batched LAPACK calls in one jit can deadlock on this CPU backend.
-        Mdep = M + 0.0 * eu.metric_residual
-        R = nearest_rotations(to_frames(Mdep) @ trace_norm_triple(Mdep, weight=trace_norm))
-        R = flip_frames(R, frame_signs(R, centred))
-    elif rotation_rank is None or rotation_rank > 0:
-        # The same data dependency as above.
-        R = high_rank_rotations(
-            centred + 0.0 * eu.metric_residual, rotation_rank, observed, min_rank=3 * k, steps=steps
-        )
-    else:
-        R = eu.rotations
-    shapes = nuclear_shapes(centred, R, observed, steps=steps)
-    # Unobserved entries leave the shapes' in-plane centroid free: move it to the translations.
-    offset = shapes.mean(axis=2)
-    shapes = shapes - offset[:, :, None]
-    translations = translations + jnp.einsum("iab,ib->ia", R[:, :2], offset)
-    R, shapes = _canonical_world(R, shapes)
-    weights, bases = _canonical_bases(shapes.reshape(shapes.shape[0], -1), k)
-    bases = bases.reshape(k, 3, -1)
-    model = jnp.einsum("iab,il,lbn->ian", R[:, :2], weights, bases)
-    target = frames - translations[:, :, None]
-    seen = True if observed is None else observed[:, None, :]
-    misfit = jnp.sqrt(jnp.sum(jnp.where(seen, model - target, 0.0) ** 2) / jnp.sum(jnp.where(seen, target, 0.0) ** 2))
-    return Euclidean(R, weights, bases, shapes, translations, misfit)

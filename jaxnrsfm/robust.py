@@ -21,6 +21,8 @@ and ``sigma`` the RMS inlier residuals of frame ``i``, of point ``j`` and of all
 few inliers cannot dominate. With homogeneous noise the weights are all near one.
 """
 
+from typing import Literal
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -356,6 +358,7 @@ def huber(
     threshold: float | None = None,
     max_steps: int = 500,
     rtol: float = 1e-10,
+    solver: Literal["auto", "als", "varpro"] = "als",
 ) -> Factorization:
     """The general robust solver (:mod:`jaxnrsfm.objective`) from the least-squares fit:
     Huber loss with ``delta`` robust scales (the classic 1.345, 95% efficient under
@@ -364,7 +367,7 @@ def huber(
     :func:`classify` too. Gradients: LM runs on constants; the least-squares fit (hence
     the scale) and the Huber solution are re-attached to ``W`` and ``delta`` (which may be
     traced) by :func:`jaxnrsfm.implicit.attach`."""
-    M, S, _, _ = least_squares_fit(W, visible, rank, complete=complete, max_steps=max_steps, rtol=rtol)
+    M, S, _, _ = least_squares_fit(W, visible, rank, complete=complete, max_steps=max_steps, rtol=rtol, solver=solver)
     _, model = classify(W, M @ S, visible, threshold)
     d = (L1_DELTA if delta is None else delta) * model.sigma
     constant = jax.lax.stop_gradient
@@ -384,9 +387,12 @@ def oracle(
     rank: int,
     max_steps: int = 500,
     rtol: float = 1e-10,
+    solver: Literal["auto", "als", "varpro"] = "als",
 ) -> Factorization:
     """The least-squares factorization told the true ``outliers``: the best any outlier
     rejection can do, the yardstick of the paper's comparison."""
     inliers = visible & ~outliers
-    M, S, steps, converged = least_squares_fit(W, inliers, rank, complete=False, max_steps=max_steps, rtol=rtol)
+    M, S, steps, converged = least_squares_fit(
+        W, inliers, rank, complete=False, max_steps=max_steps, rtol=rtol, solver=solver
+    )
     return finish(W, inliers, M, S, _zero_translations(W), steps, converged)

@@ -23,7 +23,8 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .metrics import outlier_precision_recall, rms_error, statistical_floor
-from .pipeline import Options, reconstruct_prepared
+from .pipeline import reconstruct_prepared, resolve_stages
+from .stages import MaskedALS, Oracle, UpgradeShapes
 from .status import Status
 from .synthetic import deformable_cube
 
@@ -50,22 +51,22 @@ def trial_keys(seed: int, trials: int) -> jax.Array:
     return jax.vmap(jax.random.fold_in, (None, 0))(jax.random.key(seed), jnp.arange(trials))
 
 
-def _evaluate(seq, *, k, method, options):
+def _evaluate(seq, *, k, method, stages):
     """One trial: the pipeline, then its error on the true inliers and its detection."""
     W = jnp.where(jnp.isnan(seq.W), 0.0, seq.W)
-    outliers = seq.outliers if method == "oracle" else None
-    rec = reconstruct_prepared(W, seq.visible, outliers, k=k, method=method, complete=False, options=options)
+    strategy = Oracle(seq.outliers) if method == "oracle" else stages["method"]
+    rec = reconstruct_prepared(W, seq.visible, k=k, complete=False, **{**stages, "method": strategy})
     precision, recall = outlier_precision_recall(seq.visible & ~rec.inliers, seq.outliers, seq.visible)
     error = rms_error(seq.W_clean, rec.W_hat, seq.visible & ~seq.outliers)
     return error, precision, recall, rec.status == Status.success
 
 
 @eqx.filter_jit
-def _run_trials(keys, noise, outlier_ratio, *, frames, missing, k, method, options):
+def _run_trials(keys, noise, outlier_ratio, *, frames, missing, k, method, stages):
     # One device's trials, one after another (lax.map: the solvers' step counts vary
     # between trials, and vmap would run them in lockstep).
     cube = partial(deformable_cube, n_frames=frames, noise=noise, outlier_ratio=outlier_ratio, missing_ratio=missing)
-    return jax.lax.map(partial(_evaluate, k=k, method=method, options=options), jax.vmap(cube)(keys))
+    return jax.lax.map(partial(_evaluate, k=k, method=method, stages=stages), jax.vmap(cube)(keys))
 
 
 def _run_setting(keys, noise, outlier_ratio, *, mesh, **static):
@@ -104,16 +105,18 @@ def _gather(x: jax.Array) -> np.ndarray:
 def run_sweep(
     settings: SweepSettings,
     *,
-    options: Options | None = None,
+    solver: MaskedALS | None = None,
     devices: Sequence[jax.Device] | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> dict:
     """Run every (outlier ratio, noise, method) cell of ``settings``; return a
     JSON-ready dict with the settings, and per cell the per-trial errors, precision,
-    recall, status and the wall time (compilation included, reported apart). The
-    protocol scores the 2-D fit, which the shape step does not change: ``options``
-    defaults to ``Options(refine=False)``."""
-    options = Options(refine=False) if options is None else options
+    recall, status and the wall time (compilation included, reported apart). Each method
+    runs by its name with its default options (``jaxnrsfm.stages.STRATEGIES``; the oracle
+    told each trial's outliers) and the missing-data ``solver`` (default
+    ``MaskedALS()``). The protocol scores the 2-D fit, which the rotation and shape steps
+    do not change: the paper's pipeline (:class:`~jaxnrsfm.stages.UpgradeShapes`) runs."""
+    solver = MaskedALS() if solver is None else solver
     devices = list(jax.devices() if devices is None else devices)
     mesh = Mesh(np.array(devices), ("trials",))
     # Pad the trial axis to a multiple of the device count; the padding is dropped.
@@ -129,7 +132,8 @@ def run_sweep(
                     missing=settings.missing,
                     k=settings.k,
                     method=method,
-                    options=options,
+                    # The oracle's strategy is made per trial, from the trial's outliers.
+                    stages=resolve_stages("direct" if method == "oracle" else method, None, UpgradeShapes(), solver),
                     mesh=mesh,
                 )
                 t0 = time.perf_counter()
@@ -156,7 +160,7 @@ def run_sweep(
     floors = {str(s): float(statistical_floor(s, settings.frames, 252, rank)) for s in settings.noise}
     return dict(
         settings=dataclasses.asdict(settings),
-        options=dataclasses.asdict(options),
+        solver=dataclasses.asdict(solver),
         devices=[str(d) for d in devices],
         dtype=str(jnp.zeros(()).dtype),
         floor=floors,

@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from .linalg import lowest_eigenvectors, polar_rows, truncated_svd
 from .tracks import to_frames
@@ -218,8 +218,8 @@ def metric_upgrade(
     sign = frame_signs(R, (Mi @ S).astype(M.dtype))
     shapes = sign[:, None, None] * shapes
     R = flip_frames(R, sign)
-    R, shapes = _canonical_world(R, shapes)
-    weights, bases = _canonical_bases(shapes.reshape(shapes.shape[0], -1), k)
+    R, shapes = canonical_world(R, shapes)
+    weights, bases = canonical_bases(shapes.reshape(shapes.shape[0], -1), k)
     return Euclidean(R, weights, bases.reshape(k, 3, -1), shapes, translations, metric_residual)
 
 
@@ -259,11 +259,13 @@ def flip_frames(R: Float[Array, "m 3 3"], sign: Float[Array, " m"]) -> Float[Arr
     return R * jnp.stack([sign, sign, jnp.ones_like(sign)], axis=1)[:, :, None]
 
 
-def _canonical_world(R: Float[Array, "m 3 3"], shapes: Float[Array, "m 3 n"]):
-    # The world frame is arbitrary: put it in the first camera's frame (R_0 = I). Of a
-    # reconstruction and its mirror image (z -> -z with R -> D R D, D = diag(1, 1, -1)),
-    # which project identically, keep the one whose first shape has positive depth
-    # skewness. The result no longer depends on which random start won.
+def canonical_world(
+    R: Float[Array, "m 3 3"], shapes: Float[Array, "m 3 n"]
+) -> tuple[Float[Array, "m 3 3"], Float[Array, "m 3 n"]]:
+    """Rotations and shapes in the canonical world frame: the first camera's (``R_0 = I``),
+    and of a reconstruction and its mirror image (``z -> -z`` with ``R -> D R D``,
+    ``D = diag(1, 1, -1)``), which project identically, the one whose first shape has
+    positive depth skewness. The result no longer depends on which random start won."""
     shapes = jnp.einsum("ab,ibn->ian", R[0], shapes)
     R = R @ R[0].T
     mirror = jnp.sum(shapes[0, 2] ** 3) < 0
@@ -271,11 +273,45 @@ def _canonical_world(R: Float[Array, "m 3 3"], shapes: Float[Array, "m 3 n"]):
     return D[:, None] * R * D[None, :], D[:, None] * shapes
 
 
-def _canonical_bases(flat: Float[Array, "m 3n"], k: int) -> tuple[Float[Array, "m k"], Float[Array, "k 3n"]]:
-    # Principal shapes in order of energy; the sign makes each mean weight non-negative.
+def canonical_bases(flat: Float[Array, "m 3n"], k: int) -> tuple[Float[Array, "m k"], Float[Array, "k 3n"]]:
+    """Weights and bases of the best rank-``k`` approximation of the flattened shapes
+    ``(m, 3n)``: the principal shapes in order of energy, unit-RMS weights, each mean weight
+    non-negative."""
     m = flat.shape[0]
     U, s, Vt = truncated_svd(flat, k)
     sign = jnp.where(U.sum(axis=0) < 0, -1.0, 1.0).astype(flat.dtype)
     weights = U * sign * jnp.sqrt(m)
     bases = (sign * s)[:, None] * Vt / jnp.sqrt(m)
     return weights, bases
+
+
+def euclidean_from_shapes(
+    rotations: Float[Array, "m 3 3"],
+    shapes: Float[Array, "m 3 n"],
+    frames: Float[Array, "m 2 n"],
+    k: int,
+    observed: Bool[Array, "m n"] | None = None,
+) -> Euclidean:
+    """A :class:`Euclidean` from per-frame rotations and shapes found by a shape step
+    (:mod:`jaxnrsfm.stages.shapes`) that reproject onto the centred ``frames``.
+
+    The translations are the frames' centroids (not the augmented factorization's ones
+    row, which is undefined when the tracks are already centred), plus the image of the
+    shapes' in-plane centroid where unobserved entries left it free; the result is put in
+    the canonical gauge (:func:`canonical_world`). The shapes are NOT exactly rank ``k``:
+    ``weights @ bases`` is their best rank-``k`` approximation (:func:`canonical_bases`),
+    and ``metric_residual`` is that approximation's relative reprojection misfit on the
+    ``observed`` entries (default: all)."""
+    R = rotations
+    translations = frames.mean(axis=2)
+    offset = shapes.mean(axis=2)
+    shapes = shapes - offset[:, :, None]
+    translations = translations + jnp.einsum("iab,ib->ia", R[:, :2], offset)
+    R, shapes = canonical_world(R, shapes)
+    weights, bases = canonical_bases(shapes.reshape(shapes.shape[0], -1), k)
+    bases = bases.reshape(k, 3, -1)
+    model = jnp.einsum("iab,il,lbn->ian", R[:, :2], weights, bases)
+    target = frames - translations[:, :, None]
+    seen = True if observed is None else observed[:, None, :]
+    misfit = jnp.sqrt(jnp.sum(jnp.where(seen, model - target, 0.0) ** 2) / jnp.sum(jnp.where(seen, target, 0.0) ** 2))
+    return Euclidean(R, weights, bases, shapes, translations, misfit)

@@ -56,7 +56,7 @@ def test_second_call_loads_compiled_programs_from_the_cache(tmp_path):
     seq = nr.bregler_sequence(jax.random.key(0), k=2, n_frames=30, n_points=40, noise=0.5)
     np.savez(tmp_path / "tracks.npz", W=np.asarray(seq.W))
     command = [sys.executable, "-c", "from jaxnrsfm.cli import app; app()", "reconstruct", str(tmp_path / "tracks.npz")]
-    command += ["--k", "2", "--method", "direct", "--no-refine"]
+    command += ["--k", "2", "--method", "direct", "--shapes", "upgrade"]
     # Its own, empty cache: not the test session's shared one (conftest), which the command
     # would otherwise take as a cache its caller configured.
     env = {**os.environ, CACHE_ENV: str(tmp_path / "cache")}
@@ -177,6 +177,19 @@ def _bad_inputs(tmp: Path) -> dict:
         "k too large": ([good, "--k", 2], "larger than the data allows"),
         "k zero": ([good, "--k", 0], "positive integer"),
         "unknown method": ([good, "--k", 1, "--method", "magic"], "unknown method"),
+        "unknown shapes": ([good, "--k", 1, "--shapes", "bmm"], "unknown shapes 'bmm'"),
+        "option of another method": ([good, "--k", 1, "--delta", 2], "--delta does not apply to --method wang"),
+        "option of another rotation": (
+            [good, "--k", 1, "--shapes", "upgrade", "--rotation-rank", 3],
+            "--rotation-rank does not apply to --rotations upgrade",
+        ),
+        "bad stage option": ([good, "--k", 1, "--passes", 0], "passes must be a positive integer"),
+        "rotation rank too large": ([good, "--k", 1, "--rotation-rank", 9], "exceeds the centred tracks' rank"),
+        "shapes without their rotations": (
+            [good, "--k", 1, "--shapes", "upgrade", "--rotations", "high_rank"],
+            "need its rotations",
+        ),
+        "oracle": ([good, "--k", 1, "--method", "oracle"], "needs the true outliers"),
         "bad frames": ([good, "--k", 1, "--frames", "a:b"], "--frames"),
         "no frames": ([good, "--k", 1, "--frames", "10:20"], "selects no frame"),
         "export format": ([good, "--k", 1, "--export", tmp / "s.stl"], "unknown export format"),
@@ -202,6 +215,13 @@ def _bad_inputs(tmp: Path) -> dict:
         "k too large",
         "k zero",
         "unknown method",
+        "unknown shapes",
+        "option of another method",
+        "option of another rotation",
+        "bad stage option",
+        "rotation rank too large",
+        "shapes without their rotations",
+        "oracle",
         "bad frames",
         "no frames",
         "export format",

@@ -21,9 +21,9 @@ from jaxnrsfm.tracks import row_mask
 K = 2
 SOLVE = dict(rtol=1e-14, max_steps=5000)
 """A tight forward solve."""
-TIGHT = dict(SOLVE, refine=False)
+TIGHT = dict(solver=nr.MaskedALS(**SOLVE), shapes="upgrade")
 """... of the paper's pipeline (metric-upgrade shapes): the gradients of the nuclear-norm
-shape step (``refine=True``) are not verified here."""
+shape step (the default, ``shapes="nuclear"``) are not verified here."""
 
 
 def _cube(noise, missing=0.0, outliers=0.0, seed=0):
@@ -94,7 +94,7 @@ def test_huber_matches_finite_differences_in_tracks_and_delta(noise):
     def f(x):
         W, delta = x
         # k = 1: on 12 frames a k = 2 Huber fit takes Levenberg--Marquardt ~450 steps.
-        rec = nr.reconstruct(W, seq.visible, k=1, method="huber", delta=delta, **TIGHT)
+        rec = nr.reconstruct(W, seq.visible, k=1, method=nr.Huber(delta=delta), **TIGHT)
         loss = huber_loss(W - rec.W_hat, seq.visible, 1.0)
         return jnp.concatenate([_outputs(rec, truth, probe), loss[None]])
 
@@ -140,7 +140,7 @@ def test_vmap_of_grad_equals_loop_of_grad():
     seqs = jax.vmap(lambda key: nr.deformable_cube(key, noise=1.0, outlier_ratio=0.1, n_frames=8))(keys)
 
     def error(delta, W, visible, clean, outliers):
-        rec = nr.reconstruct(W, visible, k=1, method="huber", delta=delta, refine=False)
+        rec = nr.reconstruct(W, visible, k=1, method=nr.Huber(delta=delta), shapes="upgrade")
         return nr.rms_error(clean, rec.W_hat, visible & ~outliers)
 
     grad = jax.grad(error, argnums=(0, 1))
@@ -157,7 +157,7 @@ def test_float32_gradients_are_finite():
     seq, W, truth = _cube(1.0, missing=0.2)
     W32 = W.astype(jnp.float32)
     grad = jax.jit(
-        jax.grad(lambda W: nr.e3d(nr.reconstruct(W, seq.visible, k=K, method="direct", refine=False).shapes, truth))
+        jax.grad(lambda W: nr.e3d(nr.reconstruct(W, seq.visible, k=K, method="direct", shapes="upgrade").shapes, truth))
     )(W32)
     assert grad.dtype == jnp.float32
     assert bool(jnp.all(jnp.isfinite(grad))) and bool(jnp.any(grad != 0))

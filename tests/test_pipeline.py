@@ -8,7 +8,8 @@ import pytest
 import jaxnrsfm as nr
 
 FORMS = ("augmented", "registered")
-PAPER = dict(method="direct", refine=False)
+PAPER = dict(method="direct", shapes="upgrade")
+DEFAULT_DIRECT = nr.pipeline.resolve_stages("direct", None, "nuclear", None)
 """The paper's pipeline: least squares, metric upgrade, shapes H^-1 S."""
 
 
@@ -130,7 +131,7 @@ def test_failing_trial_does_not_poison_batch():
     )
 
     def run(W):
-        return jax.vmap(lambda W, v: nr.reconstruct_prepared(W, v, k=1, method="direct", complete=True))(
+        return jax.vmap(lambda W, v: nr.reconstruct_prepared(W, v, k=1, complete=True, **DEFAULT_DIRECT))(
             W, seqs.visible
         )
 

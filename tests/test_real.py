@@ -40,10 +40,10 @@ def test_refined_shapes_beat_the_upgrade(yoga150):
     k = nr.choose_k(W)
     assert k == 2
     direct = dict(k=k, method="direct")
-    plain = float(nr.e3d(nr.reconstruct(W, refine=False, **direct).shapes, shapes))
-    refined = nr.reconstruct(W, rotation_rank=0, **direct)
+    plain = float(nr.e3d(nr.reconstruct(W, shapes="upgrade", **direct).shapes, shapes))
+    refined = nr.reconstruct(W, rotations="upgrade", **direct)
     gn = float(nr.e3d(refined.shapes, shapes))
-    tn = float(nr.e3d(nr.reconstruct(W, trace_norm=0.1, **direct).shapes, shapes))
+    tn = float(nr.e3d(nr.reconstruct(W, rotations=nr.TraceNormRotations(0.1), **direct).shapes, shapes))
     assert gn < 0.08 and tn < 0.095 and max(gn, tn) < 0.85 * plain
     # gauge: the refined shapes project onto the observed tracks with the returned cameras
     assert bool(refined.status == nr.Status.success)
@@ -56,18 +56,16 @@ def test_refined_shapes_beat_the_upgrade(yoga150):
 
 @needs_data
 def test_high_rank_rotations(yoga150):
-    # Measured: 0.0336 with rotation_rank = 39 (n - 2) against 0.0721 with the upgrade's
+    # Measured: 0.0336 with HighRankRotations(39) (n - 2) against 0.0721 with the upgrade's
     # rotations (k = 2). Not uniformly better: on the first 150 frames of pickup it is
     # worse (0.295 against 0.205); on the five whole sequences it is better.
     W, shapes, _ = yoga150
-    high = float(nr.e3d(nr.reconstruct(W, k=2, method="direct", rotation_rank=39).shapes, shapes))
+    high = float(nr.e3d(nr.reconstruct(W, k=2, method="direct", rotations=nr.HighRankRotations(39)).shapes, shapes))
     assert high < 0.05
-    with pytest.raises(ValueError, match="refine=True only"):
-        nr.reconstruct(W, k=2, refine=False, rotation_rank=39)
-    with pytest.raises(ValueError, match="exceeds the rank"):
-        nr.reconstruct(W, k=2, rotation_rank=41)
-    with pytest.raises(ValueError, match="one rotation source"):
-        nr.reconstruct(W, k=2, rotation_rank=39, trace_norm=0.1)
+    with pytest.raises(ValueError, match="need its rotations"):
+        nr.reconstruct(W, k=2, rotations=nr.HighRankRotations(39), shapes="upgrade")
+    with pytest.raises(ValueError, match="exceeds the centred tracks' rank"):
+        nr.reconstruct(W, k=2, rotations=nr.HighRankRotations(41))
 
 
 @needs_data
@@ -78,7 +76,7 @@ def test_high_rank_rotations_with_missing_entries(yoga150):
     W, shapes, _ = yoga150
     observed = np.asarray(nr.drop_entries(jax.random.key(1), np.ones((150, 41), bool), 0.3))
     W_missing = np.where(np.repeat(observed, 2, axis=0), np.asarray(W), np.nan)
-    rec = nr.reconstruct(W_missing, k=2, method="direct", rotation_rank=39)
+    rec = nr.reconstruct(W_missing, k=2, method="direct", rotations=nr.HighRankRotations(39))
     assert bool(rec.status == nr.Status.success)
     assert float(nr.e3d(rec.shapes, shapes)) < 0.04
     # gauge: the shapes project onto the OBSERVED tracks with the returned cameras
@@ -161,7 +159,7 @@ def test_drink_frames_are_not_reflected():
     # e3D with the nuclear-norm shapes given the upgrade's rotations was 1.11 (0.069 with
     # the signs of frame_signs).
     seq = datasets.load_akhter("drink")
-    rec = nr.reconstruct(seq.W, k=3, method="direct", rotation_rank=0)
+    rec = nr.reconstruct(seq.W, k=3, method="direct", rotations="upgrade")
     assert float(nr.e3d(rec.shapes, seq.shapes)) < 0.1
 
 
@@ -186,7 +184,7 @@ def test_dance_is_scored_in_the_camera_frame():
     seq = datasets.load_akhter("dance")
     assert seq.frame == "camera"
     W, truth = seq.W[:120], seq.shapes[:60]
-    rec = nr.reconstruct(W, k=2, method="direct", refine=False)
+    rec = nr.reconstruct(W, k=2, method="direct", shapes="upgrade")
     rotated = np.einsum("iab,ibn->ian", np.asarray(rec.rotations), np.asarray(rec.shapes))
     np.testing.assert_allclose(rec.shapes_in("camera"), rotated, atol=1e-12)
     np.testing.assert_allclose(
@@ -203,7 +201,7 @@ def test_implausible_shapes_are_reported():
     # The silent failure the check exists for: shapes whose depth an upgrade amplified far
     # beyond the object's extent, reprojecting exactly. A sound reconstruction passes.
     seq = nr.bregler_sequence(jax.random.key(5), k=2, n_frames=30, n_points=25, noise=0.5)
-    rec = nr.reconstruct(seq.W, k=2, method="direct", refine=False)
+    rec = nr.reconstruct(seq.W, k=2, method="direct", shapes="upgrade")
     assert bool(rec.status == nr.Status.success)
     assert not bool(implausible(rec.rotations, rec.shapes, rec.translations, rec.W_hat))
     camera = np.einsum("iab,ibn->ian", np.asarray(rec.rotations), np.asarray(rec.shapes))

@@ -17,13 +17,13 @@ from jaxnrsfm.objective import huber_loss, robust_factorize
     "kwargs, message",
     [
         (dict(method="robust"), "unknown method 'robust'"),
-        (dict(method="wang", threshold=0.0), "threshold must be > 0"),
-        (dict(method="wang", passes=0), "passes"),
-        (dict(method="huber", delta=0.0), "delta must be > 0"),
-        (dict(method="huber", delta=-1.0), "delta must be > 0"),
-        (dict(method="oracle"), "needs the true `outliers`"),
-        (dict(method="wang", outliers=np.zeros((6, 20), bool)), "only it takes one"),
-        (dict(method="wang", form="registered"), "supports only method='direct'"),
+        (dict(method="oracle"), "needs the true outliers"),
+        (dict(method=nr.Oracle(np.zeros((5, 20), bool))), "must have shape"),
+        (dict(method="wang", form="registered"), "supports only the direct fit"),
+        (dict(shapes="bmm"), "unknown shape step 'bmm'"),
+        (dict(rotations="high_rank", shapes="upgrade"), "need its rotations"),
+        (dict(rotations=nr.HighRankRotations(rank=20)), "exceeds"),
+        (dict(solver="als"), "solver must be a MaskedALS"),
     ],
 )
 def test_option_errors(kwargs, message):
@@ -32,11 +32,30 @@ def test_option_errors(kwargs, message):
         nr.reconstruct(W, k=1, **kwargs)
 
 
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda: nr.Wang(threshold=0.0), "threshold must be > 0"),
+        (lambda: nr.Wang(passes=0), "passes"),
+        (lambda: nr.Huber(delta=0.0), "delta must be > 0"),
+        (lambda: nr.Huber(delta=-1.0), "delta must be > 0"),
+        (lambda: nr.Huynh(iterations=0), "iterations"),
+        (lambda: nr.HighRankRotations(rank=0), "rank must be"),
+        (lambda: nr.TraceNormRotations(weight=0.0), "weight must be > 0"),
+        (lambda: nr.NuclearShapes(steps=0), "steps must be"),
+        (lambda: nr.MaskedALS(varpro="sometimes"), "varpro must be one of"),
+    ],
+)
+def test_stage_option_errors(make, message):
+    # A stage's options are checked when it is made, before any tracks are seen.
+    with pytest.raises(ValueError, match=message):
+        make()
+
+
 def _evaluate(seq, method):
-    # The 2-D fit and its detection only: the shape step (refine) does not change them.
-    rec = nr.reconstruct(
-        seq.W, seq.visible, k=4, method=method, outliers=seq.outliers if method == "oracle" else None, refine=False
-    )
+    # The 2-D fit and its detection only: the shape step (shapes) does not change them.
+    method = nr.Oracle(seq.outliers) if method == "oracle" else method
+    rec = nr.reconstruct(seq.W, seq.visible, k=4, method=method, shapes="upgrade")
     precision, recall = nr.outlier_precision_recall(seq.visible & ~rec.inliers, seq.outliers, seq.visible)
     error = nr.rms_error(seq.W_clean, rec.W_hat, seq.visible & ~seq.outliers)
     return error, precision, recall, rec.status == nr.Status.success
@@ -83,7 +102,7 @@ def test_heavy_contamination_is_reported(ratio):
     residuals that look like noise; 60%: the median scale breaks down. Both must be
     reported, not returned as successes."""
     seq = nr.deformable_cube(jax.random.key(1), noise=2.0, outlier_ratio=ratio)
-    rec = nr.reconstruct(seq.W, seq.visible, k=4, method="wang", refine=False)
+    rec = nr.reconstruct(seq.W, seq.visible, k=4, method="wang", shapes="upgrade")
     assert rec.status == nr.Status.too_many_outliers
 
 
@@ -94,11 +113,11 @@ def test_failing_trial_does_not_poison_batch():
         jax.random.split(jax.random.key(4), 3)
     )
     W = seqs.W.at[1, 4:6].add(300.0 * jnp.sign(jnp.sin(jnp.arange(30.0)) + 0.1))
-    batched = jax.vmap(lambda W, v: nr.reconstruct(W, v, k=1, method="wang", refine=False))(W, seqs.visible)
+    batched = jax.vmap(lambda W, v: nr.reconstruct(W, v, k=1, method="wang", shapes="upgrade"))(W, seqs.visible)
     ok = batched.status == nr.Status.success
     assert list(ok) == [True, False, True]
     for t in (0, 2):
-        one = nr.reconstruct(W[t], seqs.visible[t], k=1, method="wang", refine=False)
+        one = nr.reconstruct(W[t], seqs.visible[t], k=1, method="wang", shapes="upgrade")
         np.testing.assert_array_equal(batched.inliers[t], one.inliers)
         np.testing.assert_allclose(batched.W_hat[t], one.W_hat, rtol=1e-7, atol=1e-7)
 
@@ -118,8 +137,8 @@ def test_huber_with_huge_delta_is_least_squares():
 def test_huber_and_l1_resist_outliers(method):
     seq = nr.bregler_sequence(jax.random.key(0), k=2, n_frames=30, n_points=60, noise=1.0, outlier_ratio=0.1)
     inl = seq.visible & ~seq.outliers
-    direct = nr.reconstruct(seq.W, seq.visible, k=2, method="direct", refine=False)
-    rec = nr.reconstruct(seq.W, seq.visible, k=2, method=method, refine=False)
+    direct = nr.reconstruct(seq.W, seq.visible, k=2, method="direct", shapes="upgrade")
+    rec = nr.reconstruct(seq.W, seq.visible, k=2, method=method, shapes="upgrade")
     error = nr.rms_error(seq.W_clean, rec.W_hat, inl)
     assert error < 0.3 * nr.rms_error(seq.W_clean, direct.W_hat, inl)
     floor = nr.statistical_floor(1.0, 30, 60, 7)
@@ -149,7 +168,7 @@ def test_wang_on_exact_tracks(make, noise):
     k = 4 if make.func is nr.deformable_cube else make.keywords["k"]
     for ratio in (0.0, 0.1):
         seq = make(jax.random.key(3), noise=noise, outlier_ratio=ratio)
-        rec = nr.reconstruct(seq.W, seq.visible, k=k, method="wang", refine=False)
+        rec = nr.reconstruct(seq.W, seq.visible, k=k, method="wang", shapes="upgrade")
         found = seq.visible & ~rec.inliers
         if ratio == 0.0:
             assert int(found.sum()) == 0
@@ -181,7 +200,7 @@ def test_baselines_on_exact_tracks_without_outliers(method):
     for make, k in makes:
         for noise in (0.0, 1e-6):
             seq = make(jax.random.key(3), noise=noise)
-            rec = nr.reconstruct(seq.W, seq.visible, k=k, method=method, refine=False)
+            rec = nr.reconstruct(seq.W, seq.visible, k=k, method=method, shapes="upgrade")
             assert int((seq.visible & ~rec.inliers).sum()) == 0
             assert bool(rec.status == nr.Status.success)
             scale = jnp.sqrt(jnp.mean(seq.W_clean**2))

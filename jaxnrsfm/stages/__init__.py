@@ -1,0 +1,28 @@
+"""The stages of a reconstruction, as ``eqx.Module``s to compose and extend:
+
+tracks -> :class:`MaskedALS` (missing data) + :class:`OutlierStrategy` (the low-rank fit)
+-> metric upgrade -> :class:`RotationRecovery` -> :class:`ShapeStep` -> reconstruction.
+
+Each abstract base documents its contract; :func:`jaxnrsfm.reconstruct` takes instances.
+"""
+
+from .outliers import L1 as L1
+from .outliers import STRATEGIES as STRATEGIES
+from .outliers import Direct as Direct
+from .outliers import Huber as Huber
+from .outliers import Huynh as Huynh
+from .outliers import KeKanade as KeKanade
+from .outliers import Oracle as Oracle
+from .outliers import OutlierStrategy as OutlierStrategy
+from .outliers import Wang as Wang
+from .outliers import outlier_strategy as outlier_strategy
+from .rotations import ROTATIONS as ROTATIONS
+from .rotations import HighRankRotations as HighRankRotations
+from .rotations import RotationRecovery as RotationRecovery
+from .rotations import TraceNormRotations as TraceNormRotations
+from .rotations import UpgradeRotations as UpgradeRotations
+from .shapes import SHAPES as SHAPES
+from .shapes import NuclearShapes as NuclearShapes
+from .shapes import ShapeStep as ShapeStep
+from .shapes import UpgradeShapes as UpgradeShapes
+from .solver import MaskedALS as MaskedALS

@@ -1,0 +1,126 @@
+"""The rotation stage: each frame's camera rotation, given the factorization and its
+metric upgrade.
+
+Three recoveries: the metric upgrade's own (:class:`UpgradeRotations`, the paper's),
+the rotation constraints on a high-rank factorization of the tracks
+(:class:`HighRankRotations`, the default for real tracks) and Dai, Li & He's trace-norm
+relaxation (:class:`TraceNormRotations`). The kernels live in :mod:`jaxnrsfm.refine` and
+:mod:`jaxnrsfm.upgrade`. A new recovery subclasses :class:`RotationRecovery`.
+"""
+
+import abc
+
+import equinox as eqx
+from jaxtyping import Array, Bool, Float
+
+from ..refine import high_rank_rotations, trace_norm_triple
+from ..tracks import to_frames
+from ..upgrade import Euclidean, flip_frames, frame_signs, nearest_rotations
+
+
+class RotationRecovery(eqx.Module):
+    """The contract of the rotation stage.
+
+    ``__call__(frames, observed, *, k, upgrade, M)`` takes the centred tracks per frame
+    ``(m, 2, n)`` (observed inliers, and the fit's values where an entry is missing or
+    rejected), the mask of the observed inliers (``None``: all), the number of shape bases,
+    the metric upgrade (:class:`~jaxnrsfm.Euclidean`) and the centred affine motion ``M``
+    ``(2m, 3k)`` it came from, and returns rotations ``(m, 3, 3)``: frame ``i`` projects
+    with ``rotations[i, :2]``, in the frame sign (reflection) that fits the tracks. Pure
+    and jit-compatible."""
+
+    @abc.abstractmethod
+    def __call__(
+        self,
+        frames: Float[Array, "m 2 n"],
+        observed: Bool[Array, "m n"] | None,
+        *,
+        k: int,
+        upgrade: Euclidean,
+        M: Float[Array, "2m 3k"],
+    ) -> Float[Array, "m 3 3"]:
+        """The rotations (see the class docstring)."""
+
+    def check(self, shape: tuple[int, int], k: int) -> None:
+        """Raise ``ValueError`` for options that do not suit tracks of ``shape = (m, n)``
+        and ``k`` bases (called before anything is compiled). Nothing by default."""
+
+
+class UpgradeRotations(RotationRecovery):
+    """The metric upgrade's rotations (Gauss--Newton on the rotation constraints in the
+    rank-``3k`` motion space, :func:`jaxnrsfm.metric_upgrade`): the paper's. Differentiable."""
+
+    def __call__(self, frames, observed, *, k, upgrade, M):
+        return upgrade.rotations
+
+
+class HighRankRotations(RotationRecovery):
+    """The rotation constraints on a high-rank factorization of the centred tracks
+    (:func:`jaxnrsfm.refine.high_rank_rotations`): in a high-rank space the constraints can
+    pick a combination of points that the deformation barely moves, where the rank-``3k``
+    motion space leaks the deformation ``k`` bases do not explain. Unobserved and rejected
+    entries are refilled from the nuclear-norm shapes and the rotations solved again. Not
+    tested for gradients."""
+
+    rank: int | None = None
+    """Rank of the factorization; ``None`` (the default): every direction of the tracks
+    above the noise (:func:`jaxnrsfm.refine.above_noise`), at least ``3k``. At most
+    ``min(2m, n - 1)``."""
+    starts: int = 16
+    """Random starts of the Gauss--Newton solve for the rotation triple."""
+    refills: int = 2
+    """Refills of the unobserved entries from the shapes, each followed by a new solve."""
+    steps: int = 500
+    """ADMM iterations of the refills' nuclear-norm shapes."""
+
+    def __check_init__(self):
+        if self.rank is not None and not (isinstance(self.rank, int) and self.rank >= 1):
+            raise ValueError(f"rank must be None or a positive integer; got {self.rank!r}")
+        for name in ("starts", "steps"):
+            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
+                raise ValueError(f"{name} must be a positive integer; got {getattr(self, name)!r}")
+        if not (isinstance(self.refills, int) and self.refills >= 0):
+            raise ValueError(f"refills must be a non-negative integer; got {self.refills!r}")
+
+    def check(self, shape, k):
+        m, n = shape
+        if self.rank is not None and self.rank > (top := min(2 * m, n - 1)):
+            raise ValueError(f"rotation rank {self.rank} exceeds the centred tracks' rank, min(2m, n - 1) = {top}")
+
+    def __call__(self, frames, observed, *, k, upgrade, M):
+        # The data dependency on the upgrade orders these LAPACK calls after its own: two
+        # independent batched LAPACK calls in one jit can deadlock on the CPU backend.
+        return high_rank_rotations(
+            frames + 0.0 * upgrade.metric_residual,
+            self.rank,
+            observed,
+            min_rank=3 * k,
+            starts=self.starts,
+            refills=self.refills,
+            steps=self.steps,
+        )
+
+
+class TraceNormRotations(RotationRecovery):
+    """A rotation triple from Dai, Li & He's trace-norm relaxation of the rotation
+    constraints on the upgrade's motion matrix (:func:`jaxnrsfm.refine.trace_norm_triple`)."""
+
+    weight: float = 0.1
+    """Weight of the trace norm against the constraints' misfit."""
+
+    def __check_init__(self):
+        if not self.weight > 0:
+            raise ValueError(f"the trace-norm weight must be > 0; got {self.weight!r}")
+
+    def __call__(self, frames, observed, *, k, upgrade, M):
+        M = M + 0.0 * upgrade.metric_residual  # ordered after the upgrade (see HighRankRotations)
+        R = nearest_rotations(to_frames(M) @ trace_norm_triple(M, weight=self.weight))
+        return flip_frames(R, frame_signs(R, frames))
+
+
+ROTATIONS: dict[str, type[RotationRecovery]] = {
+    "upgrade": UpgradeRotations,
+    "high_rank": HighRankRotations,
+    "trace_norm": TraceNormRotations,
+}
+"""The built-in rotation recoveries by the names the command line uses."""
