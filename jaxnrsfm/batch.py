@@ -1,7 +1,7 @@
 """Many sequences at once: the single-sequence pipeline mapped over a leading trial axis.
 
 There is no batched algorithm here, only a choice of how to map
-:func:`~jaxnrsfm.pipeline.reconstruct_prepared`:
+`jaxnrsfm.pipeline.reconstruct_prepared`:
 
 - ``"loop"`` (the default): a Python loop over the jit-compiled single trial. On a
   2-core CPU it is the fastest for the robust method (``benchmarks/speed.py``, 100 cube
@@ -38,7 +38,7 @@ def reconstruct_batch(
     solver: MaskedALS | None = None,
     strategy: Literal["map", "vmap", "loop"] = "loop",
 ) -> Reconstruction:
-    """:func:`~jaxnrsfm.reconstruct` for ``T`` sequences of equal size: ``W`` is
+    """`jaxnrsfm.reconstruct` for ``T`` sequences of equal size: ``W`` is
     ``(T, 2m, n)``, ``visible`` ``(T, m, n)``; the stages as for one sequence, except that
     their array fields are per trial, with a leading ``T`` axis (``Oracle(outliers)`` with
     ``outliers`` ``(T, m, n)``). Every trial is validated (before anything is compiled)

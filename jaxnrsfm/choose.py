@@ -14,9 +14,9 @@ and Donoho's optimal hard threshold (noise from the median singular value) gives
 of 1% of the tracks' energy (RMS) asks the 3k-dimensional motion space to explain 99% of the
 image motion. On the Akhter sequences it gives k = 3 (drink), 4 (pickup, yoga), 5 (stretch,
 dance). With image noise of standard deviation ``sigma`` the natural tolerance is the
-statistical floor of :func:`jaxnrsfm.statistical_floor` relative to the tracks' RMS.
+statistical floor of `jaxnrsfm.statistical_floor` relative to the tracks' RMS.
 
-**Outliers** (``robust=True``, what :func:`jaxnrsfm.reconstruct` uses when it is not told
+**Outliers** (``robust=True``, what `jaxnrsfm.reconstruct` uses when it is not told
 ``k``): a few gross errors carry more energy than the tail of the deformation, and the
 spectrum of the tracks themselves then asks for every basis (``k = 12``, the cap, on each
 Akhter sequence with 10% outliers of 2.5--12.5% of the tracks' extent). The spectrum is
@@ -69,7 +69,7 @@ def residual_spectrum(
 ) -> np.ndarray:
     """``rho_k`` for ``k = 1..k_max``: the relative RMS residual of the best rank-``3k``
     approximation of the registered tracks (``robust``: of their robust low-rank part,
-    :func:`robust_low_rank`). Otherwise missing entries are filled with their frame's
+    `robust_low_rank`). Otherwise missing entries are filled with their frame's
     visible centroid (zero after registration) — adequate for a few missing entries only."""
     W0, vis = prepare_tracks(W, visible)
     W0, vis = np.asarray(W0, np.float64), np.asarray(vis)

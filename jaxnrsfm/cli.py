@@ -326,6 +326,14 @@ def reconstruct(
             "FILE.wrl as one VRML97 file that plays the sequence.",
         ),
     ] = None,
+    surface: Annotated[
+        bool,
+        typer.Option(
+            "--surface",
+            help="With --export: triangulated surfaces (Delaunay of the first frame's points in its image plane, "
+            "the same triangles in every frame) instead of point clouds.",
+        ),
+    ] = False,
     var: Annotated[str, typer.Option(help="The variable of a .mat INPUT that holds the tracks.")] = "W",
     frames: Annotated[
         str | None, typer.Option(help="Use only these frames: a Python slice START:STOP[:STEP], e.g. 0:100.")
@@ -341,7 +349,7 @@ def reconstruct(
 
     import jaxnrsfm as nr
 
-    from .export import export_format, export_shapes
+    from .export import export_format, export_shapes, triangulate
 
     names = ("W_hat", "inliers", "shapes", "rotations", "weights", "bases", "translations")
     try:
@@ -351,6 +359,8 @@ def reconstruct(
                 raise _InputError(f"{option} {path}: the directory {path.parent} does not exist")
         if export is not None:
             export_format(export)
+        elif surface:
+            raise _InputError("--surface shapes the --export files; give --export FILE")
         if not fps > 0:
             raise _InputError(f"--fps must be positive; got {fps}")
         stages = _stages(
@@ -385,7 +395,10 @@ def reconstruct(
         if out is not None:
             with open(out, "wb") as f:  # a file object: np.savez would append .npz to any other name
                 np.savez(f, **arrays)
-        exported = [] if export is None else export_shapes(export, arrays["shapes"], fps=fps, name=tracks.name)
+        faces = triangulate(arrays["shapes"]) if surface else None
+        exported = (
+            [] if export is None else export_shapes(export, arrays["shapes"], faces=faces, fps=fps, name=tracks.name)
+        )
     except (ValueError, OSError, KeyError) as err:
         _fail(err)
 
@@ -415,6 +428,7 @@ def reconstruct(
         "out": None if out is None else str(out),
         "export": None if not exported else str(exported[0]),
         "export_files": len(exported),
+        "export_faces": None if faces is None else len(faces),
     }
     typer.echo(json.dumps(summary, indent=2))
 

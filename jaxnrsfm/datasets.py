@@ -1,7 +1,7 @@
 """Loaders for real tracking data: the standard NRSfM and matrix-factorization benchmarks
 (MATLAB files, read with ``scipy.io.loadmat``) and the user's own tracks (``.npz``, ``.csv``).
 
-Every loader returns a :class:`Tracks`: the tracking matrix in the library's layout
+Every loader returns a `Tracks`: the tracking matrix in the library's layout
 (``2m x n``, rows ``2i, 2i+1`` = u, v of frame ``i``, NaN where missing), its visibility
 mask, and whatever ground truth the file carries. Arrays are NumPy float64, as stored:
 converting them to JAX arrays is left to the caller, who decides on float64
@@ -53,7 +53,7 @@ class Tracks:
     frame: Literal["world", "camera"] = "world"
     """The frame ``shapes`` are given in: ``"world"`` (compare a reconstruction's
     ``shapes``) or ``"camera"``, each frame's camera coordinates (compare
-    ``camera_shapes``, ``R_i S_i``): see :func:`ground_truth_frame`."""
+    ``camera_shapes``, ``R_i S_i``): see `ground_truth_frame`."""
 
 
 def ground_truth_frame(W: np.ndarray, shapes: np.ndarray) -> Literal["world", "camera"]:
@@ -147,12 +147,12 @@ def load_akhter(sequence: str | os.PathLike, *, root: str | os.PathLike | None =
 
     **Arguments:**
 
-    - `sequence`: one of :data:`AKHTER_SEQUENCES`, or the path of a ``.mat`` file.
-    - `root`: the data directory (default: :func:`data_dir`).
+    - `sequence`: one of `AKHTER_SEQUENCES`, or the path of a ``.mat`` file.
+    - `root`: the data directory (default: `data_dir`).
 
-    **Returns:** :class:`Tracks` with ``shapes`` (``F x 3 x P``, from ``S``), ``rotations``
+    **Returns:** `Tracks` with ``shapes`` (``F x 3 x P``, from ``S``), ``rotations``
     (from ``Rs``; ``None`` for dance, which has none), ``edges`` (from ``list``, made
-    0-based; ``None`` where absent) and ``frame`` (:func:`ground_truth_frame`: ``"camera"``
+    0-based; ``None`` where absent) and ``frame`` (`ground_truth_frame`: ``"camera"``
     for dance, filmed by a static camera). ``W`` is complete and on the scale of ``S``.
     """
     path = _resolve(sequence, "akhter", root)
@@ -281,8 +281,8 @@ def load_csv(path: str | os.PathLike) -> Tracks:
 
 
 def load_tracks(path: str | os.PathLike, variable: str = "W") -> Tracks:
-    """Tracks from a ``.npz``, ``.csv`` or ``.mat`` file (see :func:`load_npz`,
-    :func:`load_csv`, :func:`load_mat`; ``variable`` names the ``.mat`` file's matrix)."""
+    """Tracks from a ``.npz``, ``.csv`` or ``.mat`` file (see `load_npz`,
+    `load_csv`, `load_mat`; ``variable`` names the ``.mat`` file's matrix)."""
     suffix = Path(path).suffix.lower()
     if suffix == ".npz":
         return load_npz(path)

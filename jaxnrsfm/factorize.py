@@ -28,8 +28,8 @@ from .tracks import prepare_tracks, row_mask, to_frames
 from .varpro import varpro
 
 SOLVERS = ("auto", "als", "varpro")
-"""Missing-data solvers of :func:`factorize`: masked ALS, ALS finished by variable
-projection (:func:`jaxnrsfm.varpro.varpro`), or ``"auto"``: VarPro only where ALS stalls."""
+"""Missing-data solvers of `factorize`: masked ALS, ALS finished by variable
+projection (`jaxnrsfm.varpro.varpro`), or ``"auto"``: VarPro only where ALS stalls."""
 
 
 class Factorization(eqx.Module):
@@ -93,7 +93,7 @@ def als_step(
 
 
 DAMPING = 1e-3
-"""Ridge of :func:`initial_fit`'s first ALS sweeps, relative to each normal equation's
+"""Ridge of `initial_fit`'s first ALS sweeps, relative to each normal equation's
 mean diagonal."""
 DAMPED_STEPS = 30
 
@@ -111,7 +111,7 @@ def masked_als(
 
     ``weights`` is a visibility mask (bool) or non-negative per-entry weights; a zero
     weight is a missing entry. The first ``damped_steps`` sweeps are damped (ridge
-    ``DAMPING``, see :func:`initial_fit`); then, undamped, it stops when a sweep lowers
+    ``DAMPING``, see `initial_fit`); then, undamped, it stops when a sweep lowers
     the cost by less than ``rtol`` of itself, or when the cost is negligible against the
     data.
     """
@@ -209,9 +209,9 @@ def least_squares_fit(
     rtol: float = 1e-10,
     solver: Literal["auto", "als", "varpro"] = "als",
 ) -> tuple[Float[Array, "2m r"], Float[Array, "r n"], Int[Array, ""], Bool[Array, ""]]:
-    """:func:`initial_fit`, differentiable with respect to ``W`` and ``weights``: the
+    """`initial_fit`, differentiable with respect to ``W`` and ``weights``: the
     truncated SVD directly, the missing-data fit through the implicit function theorem
-    (:func:`jaxnrsfm.implicit.attach`; the factors come back balanced).
+    (`jaxnrsfm.implicit.attach`; the factors come back balanced).
 
     ``solver`` (static) chooses the missing-data fit: ``"als"``; ``"varpro"``, ALS then
     variable projection from its answer; ``"auto"``, VarPro only when ALS stopped at its
@@ -257,7 +257,7 @@ def finish(
     steps: Int[Array, ""],
     converged: Bool[Array, ""],
 ) -> Factorization:
-    """Assemble a :class:`Factorization`, with its cost over the inliers."""
+    """Assemble a `Factorization`, with its cost over the inliers."""
     fit = M @ S + t.reshape(-1)[:, None]
     cost = jnp.sum(jnp.where(row_mask(inliers), W - fit, 0.0) ** 2)
     return Factorization(M, S, t, fit, inliers, cost, steps, converged)
@@ -275,10 +275,10 @@ def factorize_prepared(
     rtol: float = 1e-10,
     solver: Literal["auto", "als", "varpro"] = "als",
 ) -> Factorization:
-    """:func:`factorize` on already validated, zero-filled tracks (jit-compiled, vmappable).
+    """`factorize` on already validated, zero-filled tracks (jit-compiled, vmappable).
 
     ``complete`` is static: ``True`` uses the SVD alone, ``False`` refines the SVD of the
-    mean-filled matrix by the missing-data ``solver`` of :func:`least_squares_fit`
+    mean-filled matrix by the missing-data ``solver`` of `least_squares_fit`
     (``"als"`` here, the pipeline's: a vmapped sweep would run VarPro in every trial).
     """
     t = centroids(W, visible) if register else jnp.zeros((W.shape[0] // 2, 2), W.dtype)
@@ -310,11 +310,11 @@ def factorize(
     - `form`: ``"augmented"`` (eq. 12, no registration) or ``"registered"`` (eq. 8,
       each frame centred on its visible centroid first).
     - `max_steps`, `rtol`: the alternating least-squares budget when data is missing.
-    - `solver`: the missing-data solver (:func:`least_squares_fit`): ``"auto"`` (masked
+    - `solver`: the missing-data solver (`least_squares_fit`): ``"auto"`` (masked
       ALS, finished by variable projection when ALS stalls at ``max_steps``), ``"als"``
       or ``"varpro"`` (ALS, then VarPro always). ``steps`` counts both.
 
-    **Returns:** a :class:`Factorization`.
+    **Returns:** a `Factorization`.
     """
     if form not in ("augmented", "registered"):
         raise ValueError(f"form must be 'augmented' or 'registered'; got {form!r}")

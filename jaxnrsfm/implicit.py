@@ -18,7 +18,7 @@ the stationarity of the loss. The implicit function theorem on ``F(Z) = T(Z) - Z
 ``jax.custom_jvp``: ``dZ = -(dF/dZ)^-1 dF/dargs dargs``, solved by matrix-free GMRES with
 lineax; reverse mode transposes that solve) then differentiates ``L`` with respect to the
 tracks, the weights and ``delta`` -- no unrolling, and the gauge of ``(M, S)`` never
-enters, because ``L`` has none. ``L(Z)`` is :func:`jaxnrsfm.linalg.truncated_svd`, finite
+enters, because ``L`` has none. ``L(Z)`` is `jaxnrsfm.linalg.truncated_svd`, finite
 on noise-free data. The forward pass only evaluates ``L(Z)``: the tangent solve is
 compiled and run only where the result is differentiated.
 """
@@ -47,7 +47,7 @@ def lowrank(
     Z: Float[Array, "2m n"], rank: int
 ) -> tuple[Float[Array, "2m n"], Float[Array, "2m r"], Float[Array, "r n"]]:
     """The best rank-``rank`` fit ``L = M S`` of a complete matrix, with the balanced
-    factors of :func:`jaxnrsfm.linalg.svd_factors`."""
+    factors of `jaxnrsfm.linalg.svd_factors`."""
     M, S = svd_factors(Z, rank)
     return M @ S, M, S
 
@@ -74,7 +74,7 @@ def _stationarity(Z, args, *, rank):
 
 @partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _root(rank: int, Z: Float[Array, "2m n"], args) -> Float[Array, "2m n"]:
-    """``Z``, a root of :func:`_stationarity` at ``args``, as a function of ``args``."""
+    """``Z``, a root of `_stationarity` at ``args``, as a function of ``args``."""
     return Z
 
 

@@ -4,7 +4,7 @@ Ke & Kanade (CVPR 2005, "Robust L1 norm factorization in the presence of outlier
 missing data by alternative convex programming") minimise ``sum_visible |W - M S|`` by
 alternation: with ``M`` fixed every column of ``S`` is an independent L1 regression (a
 linear program), and with ``S`` fixed every row of ``M`` likewise. A sweep is therefore a
-batch of many small LPs of the same shape, which is what :func:`l1_regression` is built
+batch of many small LPs of the same shape, which is what `l1_regression` is built
 for: one dense primal-dual interior-point method that ``jax.vmap`` runs in lockstep.
 """
 
@@ -140,7 +140,7 @@ def l1_regression(
     rescues float32.
 
     This is the subproblem of Ke & Kanade (CVPR 2005): one column of ``S`` or one row of
-    ``M`` in :func:`ke_kanade`.
+    ``M`` in `ke_kanade`.
 
     **Arguments:**
 
@@ -204,7 +204,7 @@ def ke_kanade_step(
 
     Each column of ``S`` is an L1 regression of ``W[:, j]`` on ``M`` over the visible rows,
     and each row of ``M`` one of ``W[i]`` on ``S^T``; both are batches of
-    :func:`l1_regression`. Each half-sweep solves its subproblems exactly, so the cost
+    `l1_regression`. Each half-sweep solves its subproblems exactly, so the cost
     cannot increase (up to the solver's tolerance).
     """
     S = jax.vmap(l1_regression, in_axes=(None, 1, 1), out_axes=1)(M, W, mask)
@@ -228,7 +228,7 @@ def ke_kanade(
 
     Ke & Kanade, CVPR 2005, "Robust L1 norm factorization in the presence of outliers and
     missing data by alternative convex programming": from ``M0``, alternate exact L1
-    regressions for ``S`` and ``M`` (:func:`ke_kanade_step`) until a sweep lowers the cost
+    regressions for ``S`` and ``M`` (`ke_kanade_step`) until a sweep lowers the cost
     by less than ``rtol`` of itself. Alternation only reaches a local minimum of this
     nonconvex, nonsmooth problem: start from a good ``M0`` (say the least-squares fit).
 

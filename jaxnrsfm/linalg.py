@@ -52,7 +52,7 @@ def _truncated_svd_jvp(rank, primals, tangents):
 
 def svd_factors(A: Float[Array, "p q"], rank: int) -> tuple[Float[Array, "p r"], Float[Array, "r q"]]:
     """Best rank-``rank`` factors of a complete matrix, balanced as ``U sqrt(s)``, ``sqrt(s) V^T``
-    (differentiable wherever ``s_rank > s_rank+1``, :func:`truncated_svd`)."""
+    (differentiable wherever ``s_rank > s_rank+1``, `truncated_svd`)."""
     U, s, Vt = truncated_svd(A, rank)
     root = jnp.sqrt(s)
     return U * root, root[:, None] * Vt

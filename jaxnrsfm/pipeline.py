@@ -1,7 +1,7 @@
 """The user entry point: tracks in, Euclidean reconstruction out.
 
 ``reconstruct`` validates the tracks and the stages (before anything is compiled), then
-runs one jit-compiled pure pipeline of the stages (:mod:`jaxnrsfm.stages`): the outlier
+runs one jit-compiled pure pipeline of the stages (`jaxnrsfm.stages`): the outlier
 strategy's low-rank fit -> metric upgrade -> rotation recovery -> shape step. One
 sequence per call; a batch is ``jax.vmap`` of the same call.
 """
@@ -36,7 +36,7 @@ FORMS = ("augmented", "registered")
 
 
 class Reconstruction(eqx.Module):
-    """The result of :func:`reconstruct` for one sequence (or a batch, under vmap)."""
+    """The result of `reconstruct` for one sequence (or a batch, under vmap)."""
 
     W_hat: Float[Array, "2m n"]
     """The fitted tracks ``M S`` (+ translations): the affine low-rank reprojection. The
@@ -73,7 +73,7 @@ class Reconstruction(eqx.Module):
         return jnp.einsum("...iab,...ibn->...ian", self.rotations, self.shapes)
 
     def shapes_in(self, frame: Literal["world", "camera"]) -> Float[Array, "... m 3 n"]:
-        """``shapes`` (``"world"``) or :attr:`camera_shapes` (``"camera"``): the shapes in the
+        """``shapes`` (``"world"``) or `camera_shapes` (``"camera"``): the shapes in the
         frame a ground truth is given in (``jaxnrsfm.datasets.Tracks.frame``)."""
         if frame not in ("world", "camera"):
             raise ValueError(f"frame must be 'world' or 'camera'; got {frame!r}")
@@ -97,7 +97,7 @@ looked like noise; only this count gives it away."""
 
 MISFIT = 0.12
 """Largest Kolmogorov--Smirnov distance between the kept residuals and the fitted inlier
-law (:func:`jaxnrsfm.residuals.misfit`) of a detecting method that reports success."""
+law (`jaxnrsfm.residuals.misfit`) of a detecting method that reports success."""
 
 SCALE_RATIO = 0.15
 """Largest inlier residual scale (the residual model's ``sigma``), relative to the RMS
@@ -111,7 +111,7 @@ law (Kolmogorov--Smirnov 0.09)."""
 
 DEPTH_RATIO = 10.0
 """Largest ratio of the shapes' RMS depth (along each camera's viewing direction) to
-their RMS in-plane extent that :func:`implausible` accepts. The in-plane part of a shape
+their RMS in-plane extent that `implausible` accepts. The in-plane part of a shape
 is what the tracks show; a real object seen from moving cameras is not ten times deeper
 than it is wide in every view. (The failure it catches: an upgrade whose ``H^-1``
 amplified the misfit into shapes 10^4 times larger than the object, reported as a
@@ -119,7 +119,7 @@ success with a metric residual of 2e-8.)"""
 
 REPROJECTION_RATIO = 0.5
 """Largest RMS distance, relative to the tracks' RMS spread, between the Euclidean
-model's reprojection and the fitted tracks that :func:`implausible` accepts."""
+model's reprojection and the fitted tracks that `implausible` accepts."""
 
 
 def implausible(
@@ -192,7 +192,7 @@ def reconstruct_prepared(
     form: Literal["augmented", "registered"] = "augmented",
     complete: bool = False,
 ) -> Reconstruction:
-    """:func:`reconstruct` on tracks already checked by :func:`prepare_tracks` (zero-filled,
+    """`reconstruct` on tracks already checked by `prepare_tracks` (zero-filled,
     with their effective mask) and stage instances already checked against them: the pure,
     jit-compiled pipeline that a batch vmaps. ``complete`` (static) says every entry is
     observed."""
@@ -255,9 +255,9 @@ def resolve_stages(
     form: str = "augmented",
 ) -> dict:
     """The stage instances of a pipeline, from names or instances, checked against each
-    other (a ``ValueError``): the keyword arguments of :func:`reconstruct_prepared`.
+    other (a ``ValueError``): the keyword arguments of `reconstruct_prepared`.
     ``rotations=None`` takes the shape step's
-    :meth:`~jaxnrsfm.stages.ShapeStep.default_rotations`."""
+    `jaxnrsfm.stages.ShapeStep.default_rotations`."""
     method = outlier_strategy(method)
     shapes = _stage(shapes, SHAPES, ShapeStep, "shape step")
     rotations = shapes.default_rotations() if rotations is None else rotations
@@ -276,7 +276,7 @@ def resolve_stages(
 
 
 def check_stages(stages: dict, shape: tuple[int, int], k: int) -> None:
-    """Check the stages of :func:`resolve_stages` against tracks of ``shape = (m, n)`` with
+    """Check the stages of `resolve_stages` against tracks of ``shape = (m, n)`` with
     ``k`` bases (a ``ValueError`` before anything is compiled)."""
     stages["method"].check(shape)
     stages["rotations"].check(shape, k)
@@ -295,16 +295,16 @@ def reconstruct(
 ) -> Reconstruction:
     """Reconstruct a nonrigid object from its tracks.
 
-    A reconstruction is a composition of stages (:mod:`jaxnrsfm.stages`), each an
+    A reconstruction is a composition of stages (`jaxnrsfm.stages`), each an
     ``eqx.Module`` whose fields are its options: the outlier strategy's low-rank fit with
     the missing-data solver, the metric upgrade, a rotation recovery and a shape step.
     Each is given as an instance, or by name with its default options. The defaults are
     the configuration measured best on real tracks (``benchmarks/real_sequences.py``):
-    ``k`` chosen from the tracks (:func:`jaxnrsfm.choose_k` with ``robust=True``), the
-    paper's robust algorithm (:class:`~jaxnrsfm.stages.Wang`), rotations from the rotation
+    ``k`` chosen from the tracks (`jaxnrsfm.choose_k` with ``robust=True``), the
+    paper's robust algorithm (`jaxnrsfm.stages.Wang`), rotations from the rotation
     constraints on a high-rank factorization of the tracks
-    (:class:`~jaxnrsfm.stages.HighRankRotations`) and Dai et al.'s nuclear-norm shapes
-    (:class:`~jaxnrsfm.stages.NuclearShapes`). The paper's own pipeline -- factorization
+    (`jaxnrsfm.stages.HighRankRotations`) and Dai et al.'s nuclear-norm shapes
+    (`jaxnrsfm.stages.NuclearShapes`). The paper's own pipeline -- factorization
     and metric upgrade, shapes ``H^-1 S`` -- is ``shapes="upgrade"``.
 
     **Arguments:**
@@ -312,28 +312,28 @@ def reconstruct(
     - `W`: tracks ``(2m, n)``; rows ``2i, 2i+1`` are u, v of frame ``i``; NaN = missing.
     - `visible`: optional ``(m, n)`` mask of observed entries.
     - `k`: number of shape bases (1 = rigid); ``None`` (the default) chooses it from the
-      tracks, :func:`jaxnrsfm.choose_k` with ``robust=True`` (needs concrete tracks:
+      tracks, `jaxnrsfm.choose_k` with ``robust=True`` (needs concrete tracks:
       under ``jit`` or ``vmap`` give ``k``).
-    - `method`: the outlier strategy (:class:`~jaxnrsfm.stages.OutlierStrategy`):
+    - `method`: the outlier strategy (`jaxnrsfm.stages.OutlierStrategy`):
       ``"wang"`` / ``Wang(...)`` (the default) is the paper's robust algorithm;
       ``"direct"`` fits every observed entry by least squares; ``"huynh"`` is Huynh et
       al.'s pseudo-observation correction; ``"ke_kanade"`` Ke & Kanade's L1 factorization
       by alternating linear programs; ``"huber"`` and ``"l1"`` minimise the Huber or L1
       loss of the reprojection residuals with optimistix; ``Oracle(outliers)`` is least
       squares told the true outliers.
-    - `rotations`: the rotation recovery (:class:`~jaxnrsfm.stages.RotationRecovery`):
+    - `rotations`: the rotation recovery (`jaxnrsfm.stages.RotationRecovery`):
       ``"high_rank"``, ``"upgrade"`` (the metric upgrade's own) or ``"trace_norm"``;
       ``None`` (the default): the shape step's choice (high-rank for the nuclear-norm
       shapes, the upgrade's for its own shapes).
-    - `shapes`: the shape step (:class:`~jaxnrsfm.stages.ShapeStep`): ``"nuclear"`` (the
+    - `shapes`: the shape step (`jaxnrsfm.stages.ShapeStep`): ``"nuclear"`` (the
       default) or ``"upgrade"`` (the paper's ``H^-1 S``, with the upgrade's rotations only).
-    - `solver`: the missing-data solver, :class:`~jaxnrsfm.stages.MaskedALS` (its budget,
+    - `solver`: the missing-data solver, `jaxnrsfm.stages.MaskedALS` (its budget,
       and whether VarPro finishes the least-squares fits).
     - `form`: ``"augmented"`` (the paper's rank-(3k+1) factorization, eq. 12, no
       registration; the default) or ``"registered"`` (rank 3k after centring each frame
       on its visible centroid, eq. 8; the direct fit only).
 
-    **Returns:** a :class:`Reconstruction`; its ``status`` reports, per trial, a solver
+    **Returns:** a `Reconstruction`; its ``status`` reports, per trial, a solver
     that did not converge, more outliers than the data can lose, or implausible shapes.
 
     **Raises:** ``ValueError`` (before any compilation) for malformed tracks, an unknown

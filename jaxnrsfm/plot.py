@@ -68,7 +68,7 @@ def _pyplot():
 
 
 def plot_sweep(result: dict, path: str | Path) -> Path:
-    """The paper's Fig. 5 from :func:`jaxnrsfm.sweep.run_sweep`'s result: mean error on
+    """The paper's Fig. 5 from `jaxnrsfm.sweep.run_sweep`'s result: mean error on
     the inliers against the noise-free tracks vs the noise level, one panel per outlier
     ratio, one line per method, with the statistical floor of a rank-(3k+1) fit."""
     plt = _pyplot()

@@ -2,7 +2,7 @@
 block matrix method (BMM; "A simple prior-free method for non-rigid structure-from-motion
 factorization", CVPR 2012 / IJCV 2014).
 
-The metric upgrade (:mod:`jaxnrsfm.upgrade`) reads the shapes off the triples ``H`` of the
+The metric upgrade (`jaxnrsfm.upgrade`) reads the shapes off the triples ``H`` of the
 affine factorization, ``B = H^-1 S``. That step amplifies every error of ``H`` (Xiao et
 al.'s basis ambiguity) and is what made the upgrade "only adequate" on real data: on the
 Akhter motion-capture sequences its e3D was 0.13--20 for k = 2..8. BMM keeps the rotations
@@ -27,8 +27,8 @@ Measured (benchmarks/real_sequences.py, shared/data/akhter): with the TRUE rotat
 step alone gives e3D 0.03--0.05 on pickup, yoga and stretch, so the shape step is not the
 bottleneck; the rotations are. Three rotation sources are offered: the metric upgrade's
 (Gauss--Newton on the rotation constraints), Dai et al.'s trace-norm relaxation
-(:func:`trace_norm_triple`) and the same constraints in a high-rank factorization of the
-tracks (:func:`high_rank_rotations`). None is uniformly better on the five sequences.
+(`trace_norm_triple`) and the same constraints in a high-rank factorization of the
+tracks (`high_rank_rotations`). None is uniformly better on the five sequences.
 
 What did NOT help, and is therefore not here: a joint Gauss--Newton refinement of
 rotations, weights and bases on the reprojection error. Started from the TRUE rotations and
@@ -166,7 +166,7 @@ def trace_norm_triple(
 
 MIN_SCALE = 0.5
 """Smallest frame scale ``|M_i g|``, relative to the median frame's, of a high-rank
-rotation triple (:func:`jaxnrsfm.upgrade.rotation_triple`). A camera's rigid part
+rotation triple (`jaxnrsfm.upgrade.rotation_triple`). A camera's rigid part
 projects at a steady scale; the degenerate minima vanish in some frames (measured on the
 halves of the Akhter sequences: 0.02--0.08 for the degenerate ones, 0.94--0.98 for the others)."""
 
@@ -213,7 +213,7 @@ def high_rank_rotations(
 ) -> Float[Array, "m 3 3"]:
     """Rotations from the rotation constraints on a rank-``rank`` factorization of the
     centred tracks, ``rank`` well above ``3k``; ``None`` (the default): every direction
-    that stands above the noise (:func:`above_noise`), at least ``min_rank``.
+    that stands above the noise (`above_noise`), at least ``min_rank``.
 
     The rule. On noisy synthetic tracks the directions beyond the shapes' ``3k`` carry
     only noise and spoil the triple (the cube with sigma 2: rotations 0.49 degrees off at
@@ -223,7 +223,7 @@ def high_rank_rotations(
     the nuclear-norm shapes at ranks 15--40 on the five sequences and their halves (15 sets),
     e3D varies by up to 30% between neighbouring ranks; the sum over the 15 was 1.646 at
     ``n - 2`` and 1.641 at ``n - 1``, and the degenerate triples of the halves are removed by
-    :data:`MIN_SCALE`.
+    `MIN_SCALE`.
 
     The metric upgrade's triple ``g`` lives in the rank-``3k`` motion space, which leaks
     the deformation that ``k`` bases do not explain into every block ``M_i g``; a wrong
@@ -240,7 +240,7 @@ def high_rank_rotations(
     A high-rank factorization needs every entry, and a rank-``3k + 1`` fill-in of the
     missing ones hides exactly the deformation this relies on. With ``observed``, the
     unobserved entries are refilled ``refills`` times with the projections of the
-    nuclear-norm shapes (:func:`nuclear_shapes`, which leaves them free) given the current
+    nuclear-norm shapes (`nuclear_shapes`, which leaves them free) given the current
     rotations, and the rotations are solved again. Measured with ``method="wang"`` and 30%
     of the entries missing (drink, stretch): e3D 0.0337 / 0.1433 after the first solve on
     the rank-``3k + 1`` fill-in, 0.0310 / 0.1353 after two refills (0.0271 / 0.1055 on

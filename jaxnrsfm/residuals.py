@@ -13,7 +13,7 @@ residual is Student-t with scale ``sigma`` and ``nu`` degrees of freedom:
     ``p_in(a) = (a / sigma^2) (1 + a^2 / (nu sigma^2))^(-(nu + 2) / 2)``
 
 (``nu = inf``: the Rayleigh law of Gaussian image noise). ``(eps, sigma)`` are fitted by
-EM for every ``nu`` of :data:`NU` and the ``nu`` of highest likelihood is kept. An entry
+EM for every ``nu`` of `NU` and the ``nu`` of highest likelihood is kept. An entry
 is an inlier where the inlier component is the more likely, ``(1 - eps) p_in(a) >= eps /
 A``, on the decreasing branch of ``p_in``: that is one threshold ``a <= T``.
 
@@ -29,7 +29,7 @@ The fitted ``nu`` (2--4 there) puts ``T`` in that gap.
 Why a floor on the scale: on exact tracks (noise-free synthetic data, a sweep starting at
 ``sigma = 0``) the residuals are the solver's round-off, and a median scale of them makes
 every numerical residual an outlier. ``sigma`` is therefore at least
-:func:`scale_floor`, ``sqrt(eps)`` of the tracks' RMS in their dtype: the precision to
+`scale_floor`, ``sqrt(eps)`` of the tracks' RMS in their dtype: the precision to
 which a least-squares fit determines its values.
 """
 
@@ -43,7 +43,7 @@ RAYLEIGH_MEDIAN = float(np.sqrt(2 * np.log(2.0)))
 """Median of a Rayleigh variable of unit scale: ``|e|`` for ``e ~ N(0, I_2)``."""
 
 NU = (3.0, 4.0, 6.0, 10.0, 20.0, 50.0, float("inf"))
-"""Degrees of freedom of the inlier law tried by :func:`fit`; ``inf`` is Rayleigh. All
+"""Degrees of freedom of the inlier law tried by `fit`; ``inf`` is Rayleigh. All
 above 2: the inliers are fitted by least squares, which presumes a finite variance (with
 ``nu = 1`` or 2 the inlier tail also explained the outliers: on Akhter's stretch with 10%
 outliers the fit took ``nu = 1``, a threshold of 56 ``sigma`` and a recall of 0.87)."""
@@ -60,10 +60,10 @@ MIN_EPS = 1e-6
 
 
 class ResidualModel(eqx.Module):
-    """The fitted mixture of :func:`fit`."""
+    """The fitted mixture of `fit`."""
 
     sigma: Float[Array, ""]
-    """Scale of the inlier law (image units), at least :func:`scale_floor`."""
+    """Scale of the inlier law (image units), at least `scale_floor`."""
     nu: Float[Array, ""]
     """Degrees of freedom of the inlier law (``inf``: Rayleigh)."""
     eps: Float[Array, ""]
@@ -154,9 +154,9 @@ def fit(errors: Float[Array, "m n"], visible: Bool[Array, "m n"], floor: Float[A
 
     - `errors`: ``|e_ij|``, ``(m, n)``.
     - `visible`: the entries to model (observed ones).
-    - `floor`: the smallest scale, :func:`scale_floor` of the tracks.
+    - `floor`: the smallest scale, `scale_floor` of the tracks.
 
-    **Returns:** a :class:`ResidualModel`; inliers are ``visible & (errors <= threshold)``.
+    **Returns:** a `ResidualModel`; inliers are ``visible & (errors <= threshold)``.
     """
     a = jnp.where(visible, errors, 0.0)
     A = jnp.maximum(jnp.max(a), floor)

@@ -2,15 +2,15 @@
 baseline, the Ke & Kanade L1 baseline and an oracle told the true outliers.
 
 All strategies work on the augmented rank-(3k+1) factorization, need no registration,
-and return a :class:`~jaxnrsfm.factorize.Factorization` whose ``inliers`` say which
+and return a `jaxnrsfm.factorize.Factorization` whose ``inliers`` say which
 observed entries were kept. They are pure and jit-compiled; a batch vmaps them.
 
-**Residual model and threshold** (:mod:`jaxnrsfm.residuals`): the residual lengths
+**Residual model and threshold** (`jaxnrsfm.residuals`): the residual lengths
 ``|e_ij|`` (eq. 16) are fitted by a mixture of heavy-tailed (Student-t) inliers and
 uniform outliers, and an entry is an outlier where the outlier component is the more
 likely: the Bayes boundary of MLESAC (Torr & Zisserman 2000) with an inlier law that also
 fits the heavy-tailed model misfit of real tracks. Every scale is floored at the tracks'
-precision (:func:`jaxnrsfm.residuals.scale_floor`), so that exact tracks have no
+precision (`jaxnrsfm.residuals.scale_floor`), so that exact tracks have no
 numerical "outliers". A fixed ``threshold`` (a multiple of the fitted scale) overrides
 the boundary.
 
@@ -60,7 +60,7 @@ def anchor_weights(
 ) -> Float[Array, "m n"]:
     """The weights of the hard-inlier fits: 1 for an inlier, ``(sigma / rms)^2`` for a
     rejected entry (``sigma`` the inliers' residual scale, ``rms`` the tracks',
-    :func:`jaxnrsfm.residuals.track_rms`), at least ``sqrt(eps)`` of the dtype.
+    `jaxnrsfm.residuals.track_rms`), at least ``sqrt(eps)`` of the dtype.
 
     A rejected entry is not dropped: it stays an observation with the variance of the
     outlier law, which spreads over the image (``rms^2``), where an inlier's is
@@ -76,8 +76,8 @@ def anchor_weights(
     converged in 58 sweeps, error 1.91. The pull of an outlier ``e`` away is
     ``(sigma / rms)^2 e``: on the cube (sigma 2, rms ~400) 2.5e-5 of it, 2.5e-3 units for
     an outlier 100 units off. On exact tracks the floor ``sqrt(eps)`` applies; it also
-    keeps float32's gradient solve (:mod:`jaxnrsfm.implicit`) well conditioned. A
-    function of ``sigma``, which is differentiated where it is (:func:`wang`'s final fit)."""
+    keeps float32's gradient solve (`jaxnrsfm.implicit`) well conditioned. A
+    function of ``sigma``, which is differentiated where it is (`wang`'s final fit)."""
     relative = jnp.maximum((sigma / residuals.track_rms(W, visible)) ** 2, jnp.sqrt(jnp.finfo(W.dtype).eps))
     return jnp.where(inliers, 1.0, jnp.where(visible, relative, 0.0))
 
@@ -90,7 +90,7 @@ def inlier_scale(errors: Float[Array, "m n"], inliers: Bool[Array, "m n"], floor
 
 
 RECLASSIFY = 2
-"""Rounds of :func:`wang`'s final classification against the least-squares fit of the
+"""Rounds of `wang`'s final classification against the least-squares fit of the
 previous round's inliers."""
 
 
@@ -116,7 +116,7 @@ def classify(
     visible: Bool[Array, "m n"],
     threshold: float | None = None,
 ) -> tuple[Bool[Array, "m n"], residuals.ResidualModel]:
-    """Observed entries that the residual model (:func:`jaxnrsfm.residuals.fit`) calls
+    """Observed entries that the residual model (`jaxnrsfm.residuals.fit`) calls
     inliers, and the model; a fixed ``threshold`` multiple of its scale overrides its
     boundary."""
     errors = entry_errors(W, fit)
@@ -173,21 +173,21 @@ def wang(
        weighted missing-data problem (masked ALS, warm-started);
     4. residuals of *all* observed entries against the new fit, a new threshold (a
        wrongly rejected entry comes back). Steps 3--4 repeat over the passes of
-       :func:`rank_schedule`, with a threshold falling from ``SCHEDULE`` times the final
-       one; then the final inliers by :func:`classify`, and (``RECLASSIFY`` rounds) the
+       `rank_schedule`, with a threshold falling from ``SCHEDULE`` times the final
+       one; then the final inliers by `classify`, and (``RECLASSIFY`` rounds) the
        rejected entries that the least-squares fit of the inliers explains taken back, and
-       those that their own track predicts (:mod:`jaxnrsfm.temporal`; only where the
+       those that their own track predicts (`jaxnrsfm.temporal`; only where the
        tracks are smooth in time);
     5. a weighted factorization of the inliers (if ``weighted``), with the weights of
-       :func:`step_weights` from the residuals of the inliers' least-squares fit.
+       `step_weights` from the residuals of the inliers' least-squares fit.
 
     Steps 6--7 (metric upgrade, per-frame structure) follow in the pipeline.
 
     Gradients: the passes run on ``stop_gradient(W)``; their decisions -- the inlier set
     and the residual model that weighs the rejected entries in the inliers' least-squares
     fit -- are constants. That fit, step 5's weights and the rejected entries' weight
-    computed from it (:func:`anchor_weights`), and the final weighted fit are functions of
-    ``W``, re-attached by :func:`jaxnrsfm.implicit.attach` (the
+    computed from it (`anchor_weights`), and the final weighted fit are functions of
+    ``W``, re-attached by `jaxnrsfm.implicit.attach` (the
     final fit with two Newton polish steps: on exact tracks one left the forward solve
     reproducible only to ~1e-9, too coarse for a finite-difference check).
 
@@ -298,8 +298,8 @@ def huynh(
     observation by a pseudo observation ``w_hat_ij + psi(e_ij)``, where ``psi`` clips the
     residual to length ``c * sigma_hat`` (Huber's influence function), with ``c``
     decreasing geometrically from ``start`` to ``end`` over the ``iterations``. The
-    entries it reports as outliers are chosen by :func:`classify`, the rule of
-    :func:`wang`, so that detection can be compared.
+    entries it reports as outliers are chosen by `classify`, the rule of
+    `wang`, so that detection can be compared.
     """
     factors = jnp.geomspace(start, end, iterations).astype(W.dtype)
     floor = residuals.scale_floor(W, visible)
@@ -337,10 +337,10 @@ def ke_kanade(
     rtol: float = 1e-4,
 ) -> Factorization:
     """Ke & Kanade (2005): L1-norm factorization by alternating linear programs
-    (:func:`jaxnrsfm.l1.ke_kanade`), started from the least-squares fit, until a sweep
+    (`jaxnrsfm.l1.ke_kanade`), started from the least-squares fit, until a sweep
     lowers the L1 cost by less than ``rtol`` of itself (on the cube, ``1e-4`` took 7
     sweeps where ``1e-6`` took 13-15, and moved the error by less than 0.1%). The entries it
-    reports as outliers are chosen by :func:`classify`, the rule of :func:`wang`, so
+    reports as outliers are chosen by `classify`, the rule of `wang`, so
     that detection can be compared."""
     M, _, _, _ = initial_fit(W, visible, rank, complete=complete)
     M, S, steps, converged = ke_kanade_l1(W, visible, M, max_steps=max_steps, rtol=rtol)
@@ -360,13 +360,13 @@ def huber(
     rtol: float = 1e-10,
     solver: Literal["auto", "als", "varpro"] = "als",
 ) -> Factorization:
-    """The general robust solver (:mod:`jaxnrsfm.objective`) from the least-squares fit:
+    """The general robust solver (`jaxnrsfm.objective`) from the least-squares fit:
     Huber loss with ``delta`` robust scales (the classic 1.345, 95% efficient under
     Gaussian noise), or the L1 loss when ``delta`` is ``None``. The scale is
-    :func:`classify`'s on the least-squares residuals; the reported outliers are chosen by
-    :func:`classify` too. Gradients: LM runs on constants; the least-squares fit (hence
+    `classify`'s on the least-squares residuals; the reported outliers are chosen by
+    `classify` too. Gradients: LM runs on constants; the least-squares fit (hence
     the scale) and the Huber solution are re-attached to ``W`` and ``delta`` (which may be
-    traced) by :func:`jaxnrsfm.implicit.attach`."""
+    traced) by `jaxnrsfm.implicit.attach`."""
     M, S, _, _ = least_squares_fit(W, visible, rank, complete=complete, max_steps=max_steps, rtol=rtol, solver=solver)
     _, model = classify(W, M @ S, visible, threshold)
     d = (L1_DELTA if delta is None else delta) * model.sigma

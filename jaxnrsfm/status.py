@@ -5,7 +5,7 @@ import equinox as eqx
 
 
 class Status(eqx.Enumeration):
-    """Outcome of :func:`jaxnrsfm.reconstruct`. Compare with ``==``, e.g.
+    """Outcome of `jaxnrsfm.reconstruct`. Compare with ``==``, e.g.
     ``result.status == Status.success`` (an array under vmap)."""
 
     success = "the reconstruction succeeded"

@@ -1,7 +1,7 @@
 """Monte Carlo sweeps: the paper's Fig. 5 protocol, with every trial recorded.
 
 A sweep draws independent cube trials for every (noise, outlier ratio) setting, runs each
-method on them as :func:`~jaxnrsfm.batch.reconstruct_batch` (the single-sequence pipeline
+method on them as `jaxnrsfm.batch.reconstruct_batch` (the single-sequence pipeline
 mapped over trials, never a second implementation) and records, per trial, the error
 against the noise-free tracks on the true inliers, outlier precision and recall, and the
 status. Trials are split across all ``jax.devices()`` by a one-axis mesh over the trial
@@ -115,7 +115,7 @@ def run_sweep(
     runs by its name with its default options (``jaxnrsfm.stages.STRATEGIES``; the oracle
     told each trial's outliers) and the missing-data ``solver`` (default
     ``MaskedALS()``). The protocol scores the 2-D fit, which the rotation and shape steps
-    do not change: the paper's pipeline (:class:`~jaxnrsfm.stages.UpgradeShapes`) runs."""
+    do not change: the paper's pipeline (`jaxnrsfm.stages.UpgradeShapes`) runs."""
     solver = MaskedALS() if solver is None else solver
     devices = list(jax.devices() if devices is None else devices)
     mesh = Mesh(np.array(devices), ("trials",))

@@ -192,7 +192,7 @@ def deformable_cube(
     uniformly random rotation and a translation placing the cube inside the 800x800
     image. Gaussian noise of standard deviation ``noise`` is added to every coordinate;
     then ``missing_ratio`` of the entries are hidden and ``outlier_ratio`` of the
-    visible ones are displaced by :func:`inject_outliers`.
+    visible ones are displaced by `inject_outliers`.
     """
     dtype = dtype or jnp.result_type(float)
     rest, modes = _cube_geometry()
@@ -227,7 +227,7 @@ def bregler_sequence(
     makes the per-frame sign of a Bregler reconstruction identifiable: ``(w_i, R_i)``
     and ``(-w_i, diag(-1, -1, 1) R_i)`` project identically, and the library resolves
     the choice by the signs under which one rigid shape explains the tracks best
-    (:func:`jaxnrsfm.upgrade.frame_signs`).
+    (`jaxnrsfm.upgrade.frame_signs`).
     ``k = 1`` is a rigid object. Bases have a standard deviation of 50 image units.
     """
     dtype = dtype or jnp.result_type(float)

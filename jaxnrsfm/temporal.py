@@ -3,7 +3,7 @@ rejects.
 
 A rank-``3k + 1`` model rejects what it does not explain. On motion capture that includes
 clean entries: a limb's end at the extreme of a movement, which no combination of the
-model's few bases reaches. Measured with :func:`jaxnrsfm.robust.wang` at the default ``k``
+model's few bases reaches. Measured with `jaxnrsfm.robust.wang` at the default ``k``
 (Akhter's clean sequences): 71 entries of yoga, 13 of stretch, clustered on a few points
 over a few dozen frames, 9.5--17.5 residual scales off the fit -- where the injected
 outliers of ``benchmarks/real_sequences.py`` lie too (14--69 scales). Their residuals
@@ -19,7 +19,7 @@ only neighbours that are themselves inliers (or taken back). The rounds repeat u
 nothing changes, so a clean run of rejected entries is taken back from its ends inwards,
 while a run displaced by a jump is not (its ends do not continue the track).
 
-It is used only where the tracks are smooth in time (:func:`smooth`): where they predict
+It is used only where the tracks are smooth in time (`smooth`): where they predict
 their inliers at least as well as the low-rank model does. On the Akhter sequences their
 median prediction error is 0.0003--0.0007 (in the tracks' units) against a residual
 boundary of 0.03--0.09; on the
@@ -59,7 +59,7 @@ def prediction_errors(W: Float[Array, "2m n"], trusted: Bool[Array, "m n"]) -> F
 
 def smooth(W: Float[Array, "2m n"], inliers: Bool[Array, "m n"], scale: Float[Array, ""]) -> Bool[Array, ""]:
     """Whether the tracks are smooth in time: their inliers' median prediction error
-    (:func:`prediction_errors`) is at most ``scale``, the low-rank model's residual scale
+    (`prediction_errors`) is at most ``scale``, the low-rank model's residual scale
     -- the tracks predict a typical inlier at least as well as the model does."""
     errors = prediction_errors(W, inliers)
     return jnp.nanmedian(jnp.where(inliers & jnp.isfinite(errors), errors, jnp.nan)) <= scale
@@ -75,7 +75,7 @@ def take_back(
     """``inliers`` with every rejected observed entry that its track's trusted neighbours
     predict within ``bound`` (the residual model's inlier boundary) taken back, in rounds
     until nothing changes (module docstring); unchanged unless the tracks are
-    :func:`smooth` at the model's residual ``scale``. The decision is discrete: a constant
+    `smooth` at the model's residual ``scale``. The decision is discrete: a constant
     to the gradient."""
     W, bound, scale = jax.lax.stop_gradient((W, bound, scale))
 

@@ -25,7 +25,7 @@ def to_frames(W: Float[Array, "2m n"]) -> Float[Array, "m 2 n"]:
 
 
 def from_frames(X: Float[Array, "m 2 n"]) -> Float[Array, "2m n"]:
-    """Inverse of :func:`to_frames`."""
+    """Inverse of `to_frames`."""
     return X.reshape(2 * X.shape[0], X.shape[2])
 
 

@@ -24,10 +24,10 @@ block per frame, ``R_i`` the first two rows of a rotation). The upgrade proceeds
    that no frame's weights nearly cancel) and the triples solved once more.
 4. **Shapes.** ``B = H^-1 S``, ``S_i = sum_l w_il B_l``. The Bregler model cannot tell
    ``(w_i, R_i)`` from ``(-w_i, diag(-1,-1,1) R_i)`` (a per-frame point reflection of
-   the shape); :func:`frame_signs` picks the signs under which one rigid shape explains
+   the shape); `frame_signs` picks the signs under which one rigid shape explains
    the tracks best. (Deciding them on the shapes ``w_i B`` fails on real data: ``H^-1``
    amplifies the errors of ``H``: on the Akhter drink sequence a third of the frames came
-   out reflected, and e3D with :mod:`jaxnrsfm.refine`'s shapes was 1.26 instead of 0.039
+   out reflected, and e3D with `jaxnrsfm.refine`'s shapes was 1.26 instead of 0.039
    for the same rotations.) Finally the
    reconstruction is put in a canonical gauge: the world frame is the first camera's
    (``R_0 = I``), the mirror image with positive depth skewness in frame 0, and the
@@ -292,14 +292,14 @@ def euclidean_from_shapes(
     k: int,
     observed: Bool[Array, "m n"] | None = None,
 ) -> Euclidean:
-    """A :class:`Euclidean` from per-frame rotations and shapes found by a shape step
-    (:mod:`jaxnrsfm.stages.shapes`) that reproject onto the centred ``frames``.
+    """A `Euclidean` from per-frame rotations and shapes found by a shape step
+    (`jaxnrsfm.stages.shapes`) that reproject onto the centred ``frames``.
 
     The translations are the frames' centroids (not the augmented factorization's ones
     row, which is undefined when the tracks are already centred), plus the image of the
     shapes' in-plane centroid where unobserved entries left it free; the result is put in
-    the canonical gauge (:func:`canonical_world`). The shapes are NOT exactly rank ``k``:
-    ``weights @ bases`` is their best rank-``k`` approximation (:func:`canonical_bases`),
+    the canonical gauge (`canonical_world`). The shapes are NOT exactly rank ``k``:
+    ``weights @ bases`` is their best rank-``k`` approximation (`canonical_bases`),
     and ``metric_residual`` is that approximation's relative reprojection misfit on the
     ``observed`` entries (default: all)."""
     R = rotations

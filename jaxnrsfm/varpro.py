@@ -19,7 +19,7 @@ kept here, plus one that is not theirs (the ridge continuation):
 
   The two terms are orthogonal (``(D_j - P_j) D_j M = 0``), so the Gauss--Newton matrix is
   a sum of two Kronecker-structured parts, both assembled in closed form from per-column
-  ``r x r`` and per-row-pair quantities (see :func:`_normal_equations`). Dropping the second
+  ``r x r`` and per-row-pair quantities (see `_normal_equations`). Dropping the second
   term gives Kaufman's approximation, the one of the Wiberg algorithm and the default here
   (it reached the dinosaur's optimum more often than the full matrix).
 * **Gauge.** ``f(M) = f(M G)`` for every invertible ``r x r`` matrix ``G``: the
@@ -33,7 +33,7 @@ kept here, plus one that is not theirs (the ridge continuation):
 * **Damping.** Levenberg's ``lambda I``, multiplied by 10 after a rejected step and divided
   by 10 after an accepted one, as in Hong & Fitzgibbon's code.
 * **Ridge continuation.** The closed-form ``S`` is first regularised, ``|S|^2`` weighted
-  by a ``mu`` that decreases level by level to round-off (see :func:`varpro`): it keeps
+  by a ``mu`` that decreases level by level to round-off (see `varpro`): it keeps
   random starts away from the nearly singular ``G_j`` where the plain cost is too rough
   for a Gauss--Newton model. Each ``s_j`` comes from a QR decomposition, not the normal
   equations, so that float32 works too.
@@ -182,7 +182,7 @@ def varpro(
     **Arguments:**
 
     - `W`: tracks ``(2m, n)``, zero at missing entries (see
-      :func:`jaxnrsfm.tracks.prepare_tracks`); its dtype is the dtype of the computation.
+      `jaxnrsfm.tracks.prepare_tracks`); its dtype is the dtype of the computation.
     - `visible`: ``(m, n)`` mask; entry ``(i, j)`` covers rows ``2i, 2i+1`` of column ``j``.
       Every column needs at least ``r`` visible rows and every row at least ``r``
       visible columns, or its factor is not determined.

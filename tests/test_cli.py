@@ -8,6 +8,7 @@ import jax
 import numpy as np
 import pytest
 import scipy.io
+import trimesh
 from typer.testing import CliRunner
 
 import jaxnrsfm as nr
@@ -130,6 +131,11 @@ def test_reconstruct_exports_and_counts_outliers(tmp_path):
     assert sorted(p.name for p in tmp_path.glob("s_*.ply")) == [f"s_{i:04d}.ply" for i in range(12)]
     with np.load(tmp_path / "o") as f:  # written under the name given, no .npz appended
         assert np.argwhere(~f["inliers"]).tolist() == [[1, 5]]
+    # --surface: the same shapes as triangle meshes, every frame with the same triangles
+    summary = _summary(_run(tmp_path / "t.npz", *args[:4], "--export", tmp_path / "m.obj", "--surface"))
+    meshes = [trimesh.load(tmp_path / f"m_{i:04d}.obj", process=False) for i in range(12)]
+    assert summary["export_faces"] == len(meshes[0].faces) > 0
+    assert all((mesh.faces == meshes[0].faces).all() and len(mesh.vertices) == W.shape[1] for mesh in meshes)
 
 
 @pytest.fixture
@@ -194,6 +200,7 @@ def _bad_inputs(tmp: Path) -> dict:
         "no frames": ([good, "--k", 1, "--frames", "10:20"], "selects no frame"),
         "export format": ([good, "--k", 1, "--export", tmp / "s.stl"], "unknown export format"),
         "out directory": ([good, "--k", 1, "--out", tmp / "no" / "o.npz"], "does not exist"),
+        "surface without export": ([good, "--k", 1, "--surface"], "give --export FILE"),
     }
 
 
@@ -226,6 +233,7 @@ def _bad_inputs(tmp: Path) -> dict:
         "no frames",
         "export format",
         "out directory",
+        "surface without export",
     ],
 )
 def test_reconstruct_bad_input_is_one_line(tmp_path, case):

@@ -1,9 +1,9 @@
 """The stages of a reconstruction, as ``eqx.Module``s to compose and extend:
 
-tracks -> :class:`MaskedALS` (missing data) + :class:`OutlierStrategy` (the low-rank fit)
--> metric upgrade -> :class:`RotationRecovery` -> :class:`ShapeStep` -> reconstruction.
+tracks -> `MaskedALS` (missing data) + `OutlierStrategy` (the low-rank fit)
+-> metric upgrade -> `RotationRecovery` -> `ShapeStep` -> reconstruction.
 
-Each abstract base documents its contract; :func:`jaxnrsfm.reconstruct` takes instances.
+Each abstract base documents its contract; `jaxnrsfm.reconstruct` takes instances.
 """
 
 from .outliers import L1 as L1

@@ -1,12 +1,12 @@
 """The outlier stage: how a reconstruction's low-rank fit treats the observed entries.
 
-Every strategy is an :class:`OutlierStrategy`: an ``eqx.Module`` whose fields are its
+Every strategy is an `OutlierStrategy`: an ``eqx.Module`` whose fields are its
 options (documented under each), called on prepared tracks to give a
-:class:`~jaxnrsfm.factorize.Factorization` whose ``inliers`` say which observed entries
-it kept. The algorithms live in :mod:`jaxnrsfm.robust` (and :mod:`jaxnrsfm.factorize`
+`jaxnrsfm.factorize.Factorization` whose ``inliers`` say which observed entries
+it kept. The algorithms live in `jaxnrsfm.robust` (and `jaxnrsfm.factorize`
 for the direct fit); a strategy is their configuration and their contract with the
-pipeline. To add a robust loss, subclass :class:`OutlierStrategy` and implement
-``__call__``; :func:`jaxnrsfm.reconstruct`, ``jax.vmap`` and ``jax.grad`` take it as
+pipeline. To add a robust loss, subclass `OutlierStrategy` and implement
+``__call__``; `jaxnrsfm.reconstruct`, ``jax.vmap`` and ``jax.grad`` take it as
 they take the built-in ones.
 """
 
@@ -28,22 +28,41 @@ def _positive_or_none(name: str, value) -> None:
         raise ValueError(f"{name} must be > 0 (or None); got {value!r}")
 
 
+def _positive_int(name: str, value) -> None:
+    if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+        raise ValueError(f"{name} must be a positive integer; got {value!r}")
+
+
+def _robust_loss(W, visible, rank, complete, solver, delta, threshold):
+    # The Huber loss (delta in robust scales), or the L1 loss for delta None.
+    return robust.huber(
+        W,
+        visible,
+        rank=rank,
+        complete=complete,
+        delta=delta,
+        threshold=threshold,
+        solver=solver.least_squares,
+        **solver.budget,
+    )
+
+
 class OutlierStrategy(eqx.Module):
     """The contract of the outlier stage.
 
     ``__call__(W, visible, *, rank, complete, solver)`` takes zero-filled tracks ``W``
     ``(2m, n)`` with their mask ``visible`` ``(m, n)`` (as
-    :func:`jaxnrsfm.prepare_tracks` returns them), the rank of the fit (``3k + 1`` for the
+    `jaxnrsfm.prepare_tracks` returns them), the rank of the fit (``3k + 1`` for the
     augmented form, with the translations in ``M``'s last column), whether every entry
     is observed (static: ``True`` allows the plain SVD) and the missing-data
-    :class:`~jaxnrsfm.stages.MaskedALS`, and returns the fit as a
-    :class:`~jaxnrsfm.factorize.Factorization` (``translations`` zero: the pipeline
+    `jaxnrsfm.stages.MaskedALS`, and returns the fit as a
+    `jaxnrsfm.factorize.Factorization` (``translations`` zero: the pipeline
     separates them). It must be pure and jit-compatible, and must not raise on data: a
     fit that fails says so in ``converged`` (the pipeline turns that into the
-    :class:`~jaxnrsfm.Status`). Where it is differentiable is its own docstring's to say.
+    `jaxnrsfm.Status`). Where it is differentiable is its own docstring's to say.
 
     Two class variables tell the pipeline's status how to judge the result
-    (:func:`jaxnrsfm.pipeline.status_of`)."""
+    (`jaxnrsfm.pipeline.status_of`)."""
 
     judges_detection: ClassVar[bool] = False
     """The fit relies on the inliers it detected: its status also fails when it rejected
@@ -80,13 +99,13 @@ class Wang(OutlierStrategy):
     """The paper's robust algorithm (section 4.2, steps 1--5): rejection passes of a
     growing rank with soft Cauchy weights, inliers by the heavy-tailed residual model,
     rejected entries taken back where their own track predicts them, and a final weighted
-    fit of the inliers (:func:`jaxnrsfm.robust.wang`). Its inlier set is a constant to
+    fit of the inliers (`jaxnrsfm.robust.wang`). Its inlier set is a constant to
     the gradient; the final fit and its weights are differentiated."""
 
     judges_detection: ClassVar[bool] = True
     threshold: float | None = None
     """Outlier threshold as a multiple of the robust residual scale; ``None`` (the
-    default) takes the residual model's Bayes boundary (:mod:`jaxnrsfm.residuals`)."""
+    default) takes the residual model's Bayes boundary (`jaxnrsfm.residuals`)."""
     passes: int = 3
     """Minimum number of rejection passes."""
     weighted: bool = True
@@ -94,8 +113,7 @@ class Wang(OutlierStrategy):
 
     def __check_init__(self):
         _positive_or_none("threshold", self.threshold)
-        if not (isinstance(self.passes, int) and self.passes >= 1):
-            raise ValueError(f"passes must be a positive integer; got {self.passes!r}")
+        _positive_int("passes", self.passes)
 
     def __call__(self, W, visible, *, rank, complete, solver):
         return robust.wang(
@@ -112,7 +130,7 @@ class Wang(OutlierStrategy):
 
 class Huynh(OutlierStrategy):
     """Huynh, Hartley & Heyden (2003): pseudo observations whose residuals are clipped at a
-    decreasing multiple of the robust scale (:func:`jaxnrsfm.robust.huynh`). A baseline:
+    decreasing multiple of the robust scale (`jaxnrsfm.robust.huynh`). A baseline:
     its status is its own iteration's convergence."""
 
     fits_every_entry: ClassVar[bool] = True
@@ -120,8 +138,7 @@ class Huynh(OutlierStrategy):
     """Correction iterations (the clipping falls from 6 to 2.5 robust scales over them)."""
 
     def __check_init__(self):
-        if not (isinstance(self.iterations, int) and self.iterations >= 1):
-            raise ValueError(f"iterations must be a positive integer; got {self.iterations!r}")
+        _positive_int("iterations", self.iterations)
 
     def __call__(self, W, visible, *, rank, complete, solver):
         return robust.huynh(W, visible, rank=rank, complete=complete, iterations=self.iterations, **solver.budget)
@@ -129,7 +146,7 @@ class Huynh(OutlierStrategy):
 
 class KeKanade(OutlierStrategy):
     """Ke & Kanade (2005): the L1 factorization by alternating linear programs
-    (:func:`jaxnrsfm.robust.ke_kanade`). A baseline: its status is its own convergence;
+    (`jaxnrsfm.robust.ke_kanade`). A baseline: its status is its own convergence;
     ``threshold`` only sets which entries it reports as outliers."""
 
     fits_every_entry: ClassVar[bool] = True
@@ -146,7 +163,7 @@ class KeKanade(OutlierStrategy):
 
 class Huber(OutlierStrategy):
     """The Huber loss of the reprojection residuals' lengths, minimised by optimistix's
-    Levenberg--Marquardt from the least-squares fit (:func:`jaxnrsfm.robust.huber`).
+    Levenberg--Marquardt from the least-squares fit (`jaxnrsfm.robust.huber`).
     Differentiable in ``W`` and in ``delta`` (which may be a traced array)."""
 
     judges_detection: ClassVar[bool] = True
@@ -162,22 +179,13 @@ class Huber(OutlierStrategy):
         _positive_or_none("threshold", self.threshold)
 
     def __call__(self, W, visible, *, rank, complete, solver):
-        return robust.huber(
-            W,
-            visible,
-            rank=rank,
-            complete=complete,
-            delta=self.delta,
-            threshold=self.threshold,
-            solver=solver.least_squares,
-            **solver.budget,
-        )
+        return _robust_loss(W, visible, rank, complete, solver, self.delta, self.threshold)
 
 
 class L1(OutlierStrategy):
     """The L1 loss of the reprojection residuals' lengths: the Huber loss with a kink far
-    below the noise (:data:`jaxnrsfm.objective.L1_DELTA` robust scales), minimised like
-    :class:`Huber`."""
+    below the noise (`jaxnrsfm.objective.L1_DELTA` robust scales), minimised like
+    `Huber`."""
 
     judges_detection: ClassVar[bool] = True
     threshold: float | None = None
@@ -188,21 +196,12 @@ class L1(OutlierStrategy):
         _positive_or_none("threshold", self.threshold)
 
     def __call__(self, W, visible, *, rank, complete, solver):
-        return robust.huber(
-            W,
-            visible,
-            rank=rank,
-            complete=complete,
-            delta=None,
-            threshold=self.threshold,
-            solver=solver.least_squares,
-            **solver.budget,
-        )
+        return _robust_loss(W, visible, rank, complete, solver, None, self.threshold)
 
 
 class Oracle(OutlierStrategy):
     """Least squares told the true outliers: the best any outlier rejection can do, the
-    yardstick of the paper's comparison (:func:`jaxnrsfm.robust.oracle`)."""
+    yardstick of the paper's comparison (`jaxnrsfm.robust.oracle`)."""
 
     outliers: Bool[Array, "m n"] = eqx.field(converter=jnp.asarray)
     """The true outlier mask (an array: under ``jax.vmap`` one per trial)."""

@@ -1,11 +1,11 @@
 """The rotation stage: each frame's camera rotation, given the factorization and its
 metric upgrade.
 
-Three recoveries: the metric upgrade's own (:class:`UpgradeRotations`, the paper's),
+Three recoveries: the metric upgrade's own (`UpgradeRotations`, the paper's),
 the rotation constraints on a high-rank factorization of the tracks
-(:class:`HighRankRotations`, the default for real tracks) and Dai, Li & He's trace-norm
-relaxation (:class:`TraceNormRotations`). The kernels live in :mod:`jaxnrsfm.refine` and
-:mod:`jaxnrsfm.upgrade`. A new recovery subclasses :class:`RotationRecovery`.
+(`HighRankRotations`, the default for real tracks) and Dai, Li & He's trace-norm
+relaxation (`TraceNormRotations`). The kernels live in `jaxnrsfm.refine` and
+`jaxnrsfm.upgrade`. A new recovery subclasses `RotationRecovery`.
 """
 
 import abc
@@ -24,7 +24,7 @@ class RotationRecovery(eqx.Module):
     ``__call__(frames, observed, *, k, upgrade, M)`` takes the centred tracks per frame
     ``(m, 2, n)`` (observed inliers, and the fit's values where an entry is missing or
     rejected), the mask of the observed inliers (``None``: all), the number of shape bases,
-    the metric upgrade (:class:`~jaxnrsfm.Euclidean`) and the centred affine motion ``M``
+    the metric upgrade (`jaxnrsfm.Euclidean`) and the centred affine motion ``M``
     ``(2m, 3k)`` it came from, and returns rotations ``(m, 3, 3)``: frame ``i`` projects
     with ``rotations[i, :2]``, in the frame sign (reflection) that fits the tracks. Pure
     and jit-compatible."""
@@ -48,7 +48,7 @@ class RotationRecovery(eqx.Module):
 
 class UpgradeRotations(RotationRecovery):
     """The metric upgrade's rotations (Gauss--Newton on the rotation constraints in the
-    rank-``3k`` motion space, :func:`jaxnrsfm.metric_upgrade`): the paper's. Differentiable."""
+    rank-``3k`` motion space, `jaxnrsfm.metric_upgrade`): the paper's. Differentiable."""
 
     def __call__(self, frames, observed, *, k, upgrade, M):
         return upgrade.rotations
@@ -56,7 +56,7 @@ class UpgradeRotations(RotationRecovery):
 
 class HighRankRotations(RotationRecovery):
     """The rotation constraints on a high-rank factorization of the centred tracks
-    (:func:`jaxnrsfm.refine.high_rank_rotations`): in a high-rank space the constraints can
+    (`jaxnrsfm.refine.high_rank_rotations`): in a high-rank space the constraints can
     pick a combination of points that the deformation barely moves, where the rank-``3k``
     motion space leaks the deformation ``k`` bases do not explain. Unobserved and rejected
     entries are refilled from the nuclear-norm shapes and the rotations solved again. Not
@@ -64,7 +64,7 @@ class HighRankRotations(RotationRecovery):
 
     rank: int | None = None
     """Rank of the factorization; ``None`` (the default): every direction of the tracks
-    above the noise (:func:`jaxnrsfm.refine.above_noise`), at least ``3k``. At most
+    above the noise (`jaxnrsfm.refine.above_noise`), at least ``3k``. At most
     ``min(2m, n - 1)``."""
     starts: int = 16
     """Random starts of the Gauss--Newton solve for the rotation triple."""
@@ -103,7 +103,7 @@ class HighRankRotations(RotationRecovery):
 
 class TraceNormRotations(RotationRecovery):
     """A rotation triple from Dai, Li & He's trace-norm relaxation of the rotation
-    constraints on the upgrade's motion matrix (:func:`jaxnrsfm.refine.trace_norm_triple`)."""
+    constraints on the upgrade's motion matrix (`jaxnrsfm.refine.trace_norm_triple`)."""
 
     weight: float = 0.1
     """Weight of the trace norm against the constraints' misfit."""

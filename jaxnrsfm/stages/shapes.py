@@ -1,11 +1,11 @@
 """The shape stage: per-frame 3-D shapes given the rotations.
 
-Two steps: Dai, Li & He's nuclear-norm shapes (:class:`NuclearShapes`, the default for
+Two steps: Dai, Li & He's nuclear-norm shapes (`NuclearShapes`, the default for
 real tracks: the least nuclear norm of the deformations that reproject exactly onto the
 observed inliers) and the paper's own, ``H^-1 S`` from the metric upgrade
-(:class:`UpgradeShapes`). A shape prior of one's own subclasses :class:`ShapeStep` and
+(`UpgradeShapes`). A shape prior of one's own subclasses `ShapeStep` and
 implements ``__call__``; the pipeline puts its shapes in the canonical gauge
-(:func:`jaxnrsfm.upgrade.euclidean_from_shapes`).
+(`jaxnrsfm.upgrade.euclidean_from_shapes`).
 """
 
 import abc
@@ -27,8 +27,8 @@ class ShapeStep(eqx.Module):
     metric upgrade, and returns shapes ``(m, 3, n)`` whose projections
     ``rotations[i, :2] @ shapes[i]`` explain the observed tracks. Pure and jit-compatible.
 
-    :meth:`euclidean` turns them into the reconstruction's :class:`~jaxnrsfm.Euclidean`
-    (translations, canonical gauge, principal bases); :meth:`default_rotations` is the
+    `euclidean` turns them into the reconstruction's `jaxnrsfm.Euclidean`
+    (translations, canonical gauge, principal bases); `default_rotations` is the
     rotation recovery a pipeline uses with this step when none is given."""
 
     @abc.abstractmethod
@@ -68,7 +68,7 @@ class ShapeStep(eqx.Module):
 class NuclearShapes(ShapeStep):
     """Dai, Li & He's shapes (BMM): of least nuclear norm of their deviations from the
     mean shape, projecting exactly onto the observed inliers; unobserved and rejected
-    entries are left free (:func:`jaxnrsfm.refine.nuclear_shapes`). With the true
+    entries are left free (`jaxnrsfm.refine.nuclear_shapes`). With the true
     rotations e3D 0.03--0.05 on the Akhter sequences: the rotations limit accuracy."""
 
     steps: int = 500
@@ -86,8 +86,8 @@ class NuclearShapes(ShapeStep):
 
 class UpgradeShapes(ShapeStep):
     """The paper's shapes, ``S_i = sum_l w_il B_l`` with ``B = H^-1 S`` from the metric
-    upgrade (:func:`jaxnrsfm.metric_upgrade`), in the upgrade's own gauge. They belong to
-    the upgrade's rotations, so this step takes only :class:`UpgradeRotations`.
+    upgrade (`jaxnrsfm.metric_upgrade`), in the upgrade's own gauge. They belong to
+    the upgrade's rotations, so this step takes only `UpgradeRotations`.
     Differentiable."""
 
     def default_rotations(self):

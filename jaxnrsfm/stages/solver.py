@@ -1,11 +1,11 @@
 """The missing-data solver stage: how every low-rank fit of a reconstruction is solved.
 
 With complete tracks and uniform weights a fit is the truncated SVD; otherwise masked
-alternating least squares (:func:`jaxnrsfm.factorize.masked_als`, from the SVD of the
+alternating least squares (`jaxnrsfm.factorize.masked_als`, from the SVD of the
 mean-filled matrix, plain and damped), which the robust methods also run warm-started on
 their weighted refits. Least-squares fits on a visibility mask (the direct fit, the
 oracle's, the Huber loss's start) can be finished by variable projection
-(:func:`jaxnrsfm.varpro.varpro`), which reaches optima where ALS stalls.
+(`jaxnrsfm.varpro.varpro`), which reaches optima where ALS stalls.
 """
 
 from typing import Literal
@@ -13,7 +13,7 @@ from typing import Literal
 import equinox as eqx
 
 VARPRO = {"never": "als", "stalled": "auto", "always": "varpro"}
-"""``MaskedALS.varpro`` to the ``solver`` names of :func:`jaxnrsfm.factorize.least_squares_fit`."""
+"""``MaskedALS.varpro`` to the ``solver`` names of `jaxnrsfm.factorize.least_squares_fit`."""
 
 
 class MaskedALS(eqx.Module):
@@ -47,5 +47,5 @@ class MaskedALS(eqx.Module):
 
     @property
     def least_squares(self) -> str:
-        """The ``solver`` argument of :func:`jaxnrsfm.factorize.least_squares_fit`."""
+        """The ``solver`` argument of `jaxnrsfm.factorize.least_squares_fit`."""
         return VARPRO[self.varpro]
