@@ -363,26 +363,23 @@ def reconstruct(
             raise _InputError("--surface shapes the --export files; give --export FILE")
         if not fps > 0:
             raise _InputError(f"--fps must be positive; got {fps}")
-        stages = _stages(
-            method,
-            {
-                "threshold": ("--threshold", threshold),
-                "passes": ("--passes", passes),
-                "weighted": ("--unweighted", False if unweighted else None),
-                "iterations": ("--iterations", iterations),
-                "delta": ("--delta", delta),
-            },
-            rotations,
-            {
-                "rank": ("--rotation-rank", rotation_rank),
-                "starts": ("--starts", starts),
-                "refills": ("--refills", refills),
-                "weight": ("--trace-norm-weight", trace_norm_weight),
-            },
-            shapes,
-            {"steps": ("--shape-steps", shape_steps), "rho": ("--shape-rho", shape_rho)},
-            nr.MaskedALS(max_steps, rtol, varpro),
-        )
+        given = {
+            "--threshold": threshold,
+            "--passes": passes,
+            "--unweighted": False if unweighted else None,
+            "--iterations": iterations,
+            "--delta": delta,
+            "--rotation-rank": rotation_rank,
+            "--starts": starts,
+            "--refills": refills,
+            "--trace-norm-weight": trace_norm_weight,
+            "--shape-steps": shape_steps,
+            "--shape-rho": shape_rho,
+            "--max-steps": max_steps,
+            "--rtol": rtol,
+            "--varpro": varpro,
+        }
+        stages = _stages(method, rotations, shapes, given)
         tracks = _read_tracks(tracks_file, var)
         W, visible, true_shapes = _select_frames(tracks, frames)
         frame = tracks.frame
@@ -433,39 +430,65 @@ def reconstruct(
     typer.echo(json.dumps(summary, indent=2))
 
 
-def _build(table: dict, name: str, options: dict, option: str):
-    """The stage ``table[name]`` (named by the command-line ``option``) with the ``options``
-    given (``{field: (flag, value)}``, ``None`` = not given); a flag that is not one of its
-    fields is an error."""
+STAGE_FLAGS = {
+    "method": {
+        "threshold": "--threshold",
+        "passes": "--passes",
+        "weighted": "--unweighted",
+        "iterations": "--iterations",
+        "delta": "--delta",
+    },
+    "rotations": {
+        "rank": "--rotation-rank",
+        "starts": "--starts",
+        "refills": "--refills",
+        "weight": "--trace-norm-weight",
+        # The high-rank rotations' refills solve the shape step's ADMM: --shape-steps sets both.
+        "steps": "--shape-steps",
+    },
+    "shapes": {"steps": "--shape-steps", "rho": "--shape-rho"},
+    "solver": {"max_steps": "--max-steps", "rtol": "--rtol", "varpro": "--varpro"},
+}
+"""The command-line flag of every option (field) of every built-in stage, by stage."""
+
+
+def _build(cls: type, stage: str, given: dict, named: str, shared: frozenset = frozenset()):
+    """``cls`` with the fields whose flags (``STAGE_FLAGS[stage]``) were given (``given``: flag
+    -> value, ``None`` = not given). A flag given for a field ``cls`` lacks is an error
+    (``named`` says which stage the user chose), except a ``shared`` one, which serves another
+    stage too."""
     import dataclasses
 
-    if name not in table:
-        raise _InputError(f"unknown {option.lstrip('-')} {name!r}; choose one of {', '.join(table)}")
-    fields = {f.name for f in dataclasses.fields(table[name])}
-    given = {field: flag_value for field, flag_value in options.items() if flag_value[1] is not None}
-    if wrong := [flag for field, (flag, _) in given.items() if field not in fields]:
-        raise _InputError(f"{wrong[0]} does not apply to {option} {name}")
-    return table[name](**{field: value for field, (_, value) in given.items()})
+    fields = {f.name for f in dataclasses.fields(cls)}
+    chosen = {field: flag for field, flag in STAGE_FLAGS[stage].items() if given[flag] is not None}
+    if wrong := [flag for field, flag in chosen.items() if field not in fields and flag not in shared]:
+        raise _InputError(f"{wrong[0]} does not apply to {named}")
+    return cls(**{field: given[flag] for field, flag in chosen.items() if field in fields})
 
 
-def _stages(method, method_options, rotations, rotation_options, shapes, shape_options, solver) -> dict:
+def _stages(method: str, rotations: str | None, shapes: str, given: dict) -> dict:
     """The stage instances that the command-line options name, before anything is compiled."""
-    from .stages import ROTATIONS, SHAPES, STRATEGIES
+    from .stages import ROTATIONS, SHAPES, STRATEGIES, MaskedALS
 
     if method == "oracle":
         raise _InputError("--method oracle needs the true outliers, which a tracks file does not have")
-    shape_step = _build(SHAPES, shapes, shape_options, "--shapes")
+    for option, name, table in (
+        ("method", method, STRATEGIES),
+        ("shapes", shapes, SHAPES),
+        ("rotations", rotations, ROTATIONS),
+    ):
+        if name is not None and name not in table:
+            raise _InputError(f"unknown {option} {name!r}; choose one of {', '.join(table)}")
+    shape_step = _build(SHAPES[shapes], "shapes", given, f"--shapes {shapes}")
     if rotations is None:
         default = type(shape_step.default_rotations())
         rotations = next(name for name, cls in ROTATIONS.items() if cls is default)
-    # The refills of the high-rank rotations solve the shape step's ADMM: --shape-steps sets both.
-    if rotations == "high_rank" and shapes == "nuclear":
-        rotation_options = {**rotation_options, "steps": shape_options["steps"]}
+    shared = frozenset(STAGE_FLAGS["rotations"].values()) & frozenset(STAGE_FLAGS["shapes"].values())
     return dict(
-        method=_build(STRATEGIES, method, method_options, "--method"),
-        rotations=_build(ROTATIONS, rotations, rotation_options, "--rotations"),
+        method=_build(STRATEGIES[method], "method", given, f"--method {method}"),
+        rotations=_build(ROTATIONS[rotations], "rotations", given, f"--rotations {rotations}", shared),
         shapes=shape_step,
-        solver=solver,
+        solver=_build(MaskedALS, "solver", given, "the solver"),
     )
 
 

@@ -282,3 +282,23 @@ def test_sweep_rejects_bad_options(tmp_path):
 def test_help_shows_an_example(command):
     result = CliRunner().invoke(app, [command, "--help"], terminal_width=200)
     assert result.exit_code == 0 and f"jaxnrsfm {command}" in result.output and "Example" in result.output
+
+
+def test_every_stage_option_has_a_flag():
+    """CLI parity: every field of every built-in stage has a flag of `jaxnrsfm reconstruct`
+    (but the oracle's outliers, which a tracks file does not have), and --help shows it."""
+    import dataclasses
+
+    from jaxnrsfm.stages import ROTATIONS, SHAPES, STRATEGIES, MaskedALS
+
+    tables = {"method": STRATEGIES, "rotations": ROTATIONS, "shapes": SHAPES, "solver": {"masked_als": MaskedALS}}
+    help_text = CliRunner().invoke(app, ["reconstruct", "--help"], terminal_width=200).output
+    for stage, table in tables.items():
+        for name, cls in table.items():
+            fields = {f.name for f in dataclasses.fields(cls)} - ({"outliers"} if name == "oracle" else set())
+            assert fields <= set(cli.STAGE_FLAGS[stage]), (name, fields - set(cli.STAGE_FLAGS[stage]))
+            if stage != "solver" and name != "oracle":
+                assert name in help_text, name
+    for flags in cli.STAGE_FLAGS.values():
+        for flag in flags.values():
+            assert flag in help_text, flag
