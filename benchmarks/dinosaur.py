@@ -24,6 +24,8 @@ import numpy as np  # noqa: E402
 import jaxnrsfm as nr  # noqa: E402
 from jaxnrsfm.datasets import load_nonrigid_dinosaur  # noqa: E402
 
+OTHER_STATUSES = ("not_converged", "too_many_outliers", "nonfinite", "implausible")
+
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -57,29 +59,33 @@ def main():
         "clean-track direct fit: mean error "
         f"{float(nr.mean_reprojection_error(W, direct.W_hat, visible)):.3f}"
     )
-    # The status judges the Euclidean shapes too: those of the paper's upgrade
-    # (shapes="upgrade", what this 2-D comparison runs, fast) have implausible depth on the
-    # dinosaur; the default shape step's do not, but takes a minute a trial here.
-    print("ok: status success; impl.: Status.implausible (the paper's upgrade, shapes='upgrade'); other: any other")
+    # The status judges the Euclidean shapes too. The paper's own (shapes="upgrade") are
+    # implausible on the dinosaur whatever the 2-D fit: with the oracle's fit they reproject
+    # 375 px from it (a depth 2.4 times the in-plane extent, metric residual 0.12). This
+    # 2-D comparison therefore runs the nuclear-norm shapes with the upgrade's rotations
+    # (rotations="upgrade"), which leave W_hat as it is and are plausible where the fit is
+    # sound (oracle: 0.5 px from the fit, depth 0.25 of the extent).
+    print("ok: trials whose status is success; others: the other statuses, by name")
     print(
         f"{'method':>10} {'mean err':>9} {'(min..max)':>15} {'precision':>9} {'recall':>7} "
-        f"{'ok':>4} {'impl.':>5} {'other':>5} {'s/trial':>8}"
+        f"{'ok':>4} {'s/trial':>8}  others"
     )
     for method in args.methods:
         t0 = time.perf_counter()
-        # Reprojection errors only: the rotation and shape steps do not change W_hat.
+        # Reprojection errors: the rotation and shape steps do not change W_hat.
         strategy = nr.Oracle(outliers) if method == "oracle" else method
-        rec = nr.reconstruct_batch(Wo, k=args.k, method=strategy, shapes="upgrade")
+        rec = nr.reconstruct_batch(Wo, k=args.k, method=strategy, rotations="upgrade")
         rec = jax.block_until_ready(rec)
         elapsed = (time.perf_counter() - t0) / args.trials
         err = np.asarray(jax.vmap(nr.mean_reprojection_error, (None, 0, 0))(W, rec.W_hat, inl))
         found = visible & ~rec.inliers
         p, r = jax.vmap(nr.outlier_precision_recall, (0, 0, None))(found, outliers, visible)
         ok = int(jnp.sum(rec.status == nr.Status.success))
-        implausible = int(jnp.sum(rec.status == nr.Status.implausible))
+        counts = {name: int(jnp.sum(rec.status == getattr(nr.Status, name))) for name in OTHER_STATUSES}
+        others = ", ".join(f"{name} {count}" for name, count in counts.items() if count) or "-"
         print(
             f"{method:>10} {err.mean():9.3f} {err.min():7.3f}..{err.max():6.3f} {float(jnp.mean(p)):9.3f} "
-            f"{float(jnp.mean(r)):7.3f} {ok:4d} {implausible:5d} {args.trials - ok - implausible:5d} {elapsed:8.2f}",
+            f"{float(jnp.mean(r)):7.3f} {ok:4d} {elapsed:8.2f}  {others}",
             flush=True,
         )
 

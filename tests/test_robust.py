@@ -69,31 +69,42 @@ def cube_trials():
     return jax.vmap(partial(nr.deformable_cube, noise=2.0, outlier_ratio=0.1))(keys)
 
 
-def test_wang_detects_outliers_and_matches_oracle(cube_trials):
-    wang = jax.jit(jax.vmap(partial(_evaluate, method="wang")))(cube_trials)
-    oracle = jax.jit(jax.vmap(partial(_evaluate, method="oracle")))(cube_trials)
-    error, precision, recall, ok = (np.asarray(x) for x in wang)
+PAPER_METHODS = ("direct", "huynh", "ke_kanade", "wang", "oracle")
+
+
+@pytest.fixture(scope="module")
+def cube_results(cube_trials):
+    """Error, precision, recall and success of every method of the paper's comparison on
+    the three trials (each method compiled once for the module)."""
+    return {
+        m: tuple(np.asarray(x) for x in jax.jit(jax.vmap(partial(_evaluate, method=m)))(cube_trials))
+        for m in PAPER_METHODS
+    }
+
+
+def test_wang_detects_outliers_and_matches_oracle(cube_results):
+    error, precision, recall, ok = cube_results["wang"]
     assert ok.all()
     assert (precision >= 0.95).all() and (recall >= 0.95).all(), (precision, recall)
-    np.testing.assert_array_less(error, 1.05 * np.asarray(oracle[0]))
+    np.testing.assert_array_less(error, 1.05 * cube_results["oracle"][0])
 
 
-def test_fig5_ordering_small(cube_trials):
+def test_fig5_ordering_and_baselines_accuracy(cube_results):
     """The paper's Fig. 5 claim at one setting: the robust method beats the three
-    baselines (and ``benchmarks/fig5.py`` runs the full protocol)."""
-    two = jax.tree.map(lambda x: x[:2], cube_trials)
-    results = {m: jax.jit(jax.vmap(partial(_evaluate, method=m)))(two) for m in robust_methods()}
-    errors = {m: np.asarray(r[0]) for m, r in results.items()}
+    baselines (``benchmarks/fig5.py`` runs the full protocol); and each baseline reaches
+    the accuracy documented for it on that protocol (README, 5 trials a setting: at sigma 2
+    Huynh et al. 1.19 and 2.39 times the oracle at 5% and 20% outliers, Ke & Kanade 1.38
+    and 1.57), here at 10%."""
+    errors = {m: r[0] for m, r in cube_results.items()}
     for baseline in ("direct", "huynh", "ke_kanade"):
         np.testing.assert_array_less(errors["wang"], errors[baseline])
-        # A baseline's status is its own iteration's convergence (pipeline.BASELINES), not
+        # A baseline's status is its own iteration's convergence (fits_every_entry), not
         # the robust method's residual tests: Huynh's corrections and Ke & Kanade's L1
         # sweeps reach their stopping rules here, and report success.
-        assert np.asarray(results[baseline][3]).all(), baseline
-
-
-def robust_methods():
-    return ("direct", "huynh", "ke_kanade", "wang")
+        assert cube_results[baseline][3].all(), baseline
+    ratio = {m: errors[m] / errors["oracle"] for m in ("huynh", "ke_kanade", "direct")}
+    assert (ratio["huynh"] < 2.4).all() and (ratio["ke_kanade"] < 1.6).all(), ratio
+    assert (ratio["direct"] > 3).all(), ratio  # ignoring the outliers costs far more
 
 
 @pytest.mark.parametrize("ratio", [0.4, 0.6])
