@@ -19,6 +19,20 @@ def test_strategies_agree():
     np.testing.assert_allclose(recs["loop"].W_hat[1], one.W_hat, rtol=1e-9, atol=1e-9)
 
 
+def test_per_trial_stage_arrays():
+    # The oracle's mask is an array field: one per trial, mapped with the tracks.
+    seqs = jax.vmap(lambda key: nr.bregler_sequence(key, k=1, n_frames=10, n_points=15, noise=0.5, outlier_ratio=0.1))(
+        jax.random.split(jax.random.key(8), 2)
+    )
+    oracle = nr.Oracle(seqs.outliers)
+    recs = {s: nr.reconstruct_batch(seqs.W, k=1, method=oracle, shapes="upgrade", strategy=s) for s in ("loop", "map")}
+    for t in range(2):
+        np.testing.assert_array_equal(recs["loop"].inliers[t], seqs.visible[t] & ~seqs.outliers[t])
+        np.testing.assert_allclose(recs["map"].W_hat[t], recs["loop"].W_hat[t], rtol=1e-8, atol=1e-8)
+    with pytest.raises(ValueError, match="leading axis of 2 trials"):
+        nr.reconstruct_batch(seqs.W, k=1, method=nr.Oracle(seqs.outliers[0]))
+
+
 def test_bad_batches():
     with pytest.raises(ValueError, match="shape \\(T, 2m, n\\)"):
         nr.reconstruct_batch(np.zeros((12, 20)), k=1)
