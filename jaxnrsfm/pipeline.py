@@ -20,12 +20,12 @@ from .metrics import entry_errors
 from .stages import (
     ROTATIONS,
     SHAPES,
+    STRATEGIES,
     Direct,
     MaskedALS,
     OutlierStrategy,
     RotationRecovery,
     ShapeStep,
-    outlier_strategy,
 )
 from .status import Status
 from .tracks import centred_spread, from_frames, prepare_tracks, row_mask, to_frames
@@ -258,7 +258,9 @@ def resolve_stages(
     other (a ``ValueError``): the keyword arguments of `reconstruct_prepared`.
     ``rotations=None`` takes the shape step's
     `jaxnrsfm.stages.ShapeStep.default_rotations`."""
-    method = outlier_strategy(method)
+    if method == "oracle":
+        raise ValueError("method 'oracle' needs the true outliers: pass method=Oracle(outliers)")
+    method = _stage(method, STRATEGIES, OutlierStrategy, "method")
     shapes = _stage(shapes, SHAPES, ShapeStep, "shape step")
     rotations = shapes.default_rotations() if rotations is None else rotations
     rotations = _stage(rotations, ROTATIONS, RotationRecovery, "rotation recovery")

@@ -23,8 +23,8 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .metrics import outlier_precision_recall, rms_error, statistical_floor
-from .pipeline import reconstruct_prepared, resolve_stages
-from .stages import MaskedALS, Oracle, UpgradeShapes
+from .pipeline import reconstruct_prepared
+from .stages import STRATEGIES, MaskedALS, Oracle, UpgradeRotations, UpgradeShapes
 from .status import Status
 from .synthetic import deformable_cube
 
@@ -51,22 +51,31 @@ def trial_keys(seed: int, trials: int) -> jax.Array:
     return jax.vmap(jax.random.fold_in, (None, 0))(jax.random.key(seed), jnp.arange(trials))
 
 
-def _evaluate(seq, *, k, method, stages):
-    """One trial: the pipeline, then its error on the true inliers and its detection."""
+def _evaluate(seq, *, k, method, solver):
+    """One trial: the paper's pipeline, then its error on the true inliers and its detection."""
     W = jnp.where(jnp.isnan(seq.W), 0.0, seq.W)
-    strategy = Oracle(seq.outliers) if method == "oracle" else stages["method"]
-    rec = reconstruct_prepared(W, seq.visible, k=k, complete=False, **{**stages, "method": strategy})
+    strategy = Oracle(seq.outliers) if method == "oracle" else STRATEGIES[method]()
+    rec = reconstruct_prepared(
+        W,
+        seq.visible,
+        k=k,
+        method=strategy,
+        rotations=UpgradeRotations(),
+        shapes=UpgradeShapes(),
+        solver=solver,
+        complete=False,
+    )
     precision, recall = outlier_precision_recall(seq.visible & ~rec.inliers, seq.outliers, seq.visible)
     error = rms_error(seq.W_clean, rec.W_hat, seq.visible & ~seq.outliers)
     return error, precision, recall, rec.status == Status.success
 
 
 @eqx.filter_jit
-def _run_trials(keys, noise, outlier_ratio, *, frames, missing, k, method, stages):
+def _run_trials(keys, noise, outlier_ratio, *, frames, missing, k, method, solver):
     # One device's trials, one after another (lax.map: the solvers' step counts vary
     # between trials, and vmap would run them in lockstep).
     cube = partial(deformable_cube, n_frames=frames, noise=noise, outlier_ratio=outlier_ratio, missing_ratio=missing)
-    return jax.lax.map(partial(_evaluate, k=k, method=method, stages=stages), jax.vmap(cube)(keys))
+    return jax.lax.map(partial(_evaluate, k=k, method=method, solver=solver), jax.vmap(cube)(keys))
 
 
 def _run_setting(keys, noise, outlier_ratio, *, mesh, **static):
@@ -116,6 +125,8 @@ def run_sweep(
     told each trial's outliers) and the missing-data ``solver`` (default
     ``MaskedALS()``). The protocol scores the 2-D fit, which the rotation and shape steps
     do not change: the paper's pipeline (`jaxnrsfm.stages.UpgradeShapes`) runs."""
+    if unknown := [m for m in settings.methods if m not in STRATEGIES]:
+        raise ValueError(f"unknown method {unknown[0]!r}; choose from {', '.join(STRATEGIES)}")
     solver = MaskedALS() if solver is None else solver
     devices = list(jax.devices() if devices is None else devices)
     mesh = Mesh(np.array(devices), ("trials",))
@@ -132,8 +143,7 @@ def run_sweep(
                     missing=settings.missing,
                     k=settings.k,
                     method=method,
-                    # The oracle's strategy is made per trial, from the trial's outliers.
-                    stages=resolve_stages("direct" if method == "oracle" else method, None, UpgradeShapes(), solver),
+                    solver=solver,
                     mesh=mesh,
                 )
                 t0 = time.perf_counter()

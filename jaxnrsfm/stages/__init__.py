@@ -15,7 +15,6 @@ from .outliers import KeKanade as KeKanade
 from .outliers import Oracle as Oracle
 from .outliers import OutlierStrategy as OutlierStrategy
 from .outliers import Wang as Wang
-from .outliers import outlier_strategy as outlier_strategy
 from .rotations import ROTATIONS as ROTATIONS
 from .rotations import HighRankRotations as HighRankRotations
 from .rotations import RotationRecovery as RotationRecovery

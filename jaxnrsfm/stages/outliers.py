@@ -226,15 +226,3 @@ STRATEGIES: dict[str, type[OutlierStrategy]] = {
     "oracle": Oracle,
 }
 """The built-in strategies by the names the command line and sweeps use."""
-
-
-def outlier_strategy(method: "str | OutlierStrategy") -> OutlierStrategy:
-    """A strategy given by name (its default options) or as an instance (returned as is).
-    ``"oracle"`` needs its mask: give ``Oracle(outliers)``."""
-    if isinstance(method, OutlierStrategy):
-        return method
-    if method == "oracle":
-        raise ValueError("method 'oracle' needs the true outliers: pass method=Oracle(outliers)")
-    if method not in STRATEGIES:
-        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(STRATEGIES)} or an OutlierStrategy")
-    return STRATEGIES[method]()
