@@ -260,17 +260,19 @@ def test_sweep_writes_json_and_figures(tmp_path):
 
 
 def test_sweep_from_noise_free_creates_folder(tmp_path):
-    # A sweep that starts at sigma = 0, as many papers' do, runs and creates its folder;
-    # the oracle is exact there. The robust method is not run here: at sigma = 0 on the
-    # cube it is exact in only 4 of 8 paper-size trials (100 frames) and in neither of two
-    # 20-frame ones, where its passes settle on a wrong consensus (recall 0.95-1,
-    # inlier error 0.3-2): open, issue 17; tests/test_robust.py covers its exact cases.
+    # A sweep that starts at sigma = 0, as many papers' do, runs, creates its folder and
+    # finds every outlier there: the robust method is exact (to the sqrt(eps) weight its
+    # fit keeps on the rejected entries), as the oracle is. 40 frames: at 20 the cube's
+    # passes settle on a wrong consensus (README, "Known limitations").
     out = tmp_path / "new" / "dir"
-    args = ["sweep", "--trials", "2", "--frames", "20", "--noise", "0", "--outliers", "0.1"]
-    result = CliRunner().invoke(app, [*args, "--method", "direct", "--method", "oracle", "--out", str(out)])
+    args = ["sweep", "--trials", "2", "--frames", "40", "--noise", "0", "--noise", "1", "--outliers", "0.1"]
+    result = CliRunner().invoke(app, [*args, "--method", "wang", "--method", "oracle", "--out", str(out)])
     assert result.exit_code == 0, result.output
-    cells = {c["method"]: c for c in json.loads((out / "sweep.json").read_text())["cells"]}
-    assert max(cells["oracle"]["error"]) < 1e-9 < min(cells["direct"]["error"])
+    cells = {(c["method"], c["noise"]): c for c in json.loads((out / "sweep.json").read_text())["cells"]}
+    assert max(cells["oracle", 0.0]["error"]) < 1e-9
+    assert max(cells["wang", 0.0]["error"]) < 1e-6
+    assert min(cells["wang", 0.0]["precision"]) == min(cells["wang", 0.0]["recall"]) == 1.0
+    assert np.mean(cells["wang", 1.0]["error"]) < 1.05 * np.mean(cells["oracle", 1.0]["error"])
 
 
 def test_sweep_rejects_bad_options(tmp_path):

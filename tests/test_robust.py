@@ -187,12 +187,6 @@ def test_wang_on_exact_tracks(make, noise):
             continue
         precision, recall = nr.outlier_precision_recall(found, seq.outliers, seq.visible)
         assert float(recall) == 1.0
-        if make.func is nr.deformable_cube:
-            # Open (issue 17): on this cube the passes settle on a wrong consensus, 103
-            # inliers of two frames' moving faces rejected (precision 0.936), which the
-            # rank-13 fit of the rest cannot determine; 3 of 8 exact cube trials (60 and 100
-            # frames, seeds 0-3) do so, the other 5 reach precision 1 and 1e-9 fits.
-            continue
         assert float(precision) == 1.0
         inliers = seq.visible & ~seq.outliers
         scale = jnp.sqrt(jnp.mean(seq.W_clean**2))
