@@ -162,60 +162,55 @@ def test_huber_gradient_finite_at_zero_residual():
     assert jnp.all(jnp.isfinite(grad))
 
 
+EXACT_BREGLER = [
+    pytest.param(partial(nr.bregler_sequence, k=k, n_frames=60, n_points=80), id=f"bregler-k{k}") for k in (1, 2, 3)
+]
+"""Random Bregler sequences, k = 1..3, for the exact-tracks tests (the noise and outliers
+are the tests')."""
+
+
+def _bases(make) -> int:
+    # The k a sequence maker is fitted with: the cube's 4, or the Bregler sequence's own.
+    return 4 if make.func is nr.deformable_cube else make.keywords["k"]
+
+
+def _assert_exact_with_outliers(seq, rec) -> None:
+    # Every outlier found and nothing else, and the inliers' fit at the clean tracks to
+    # 1e-6 of their scale.
+    found = seq.visible & ~rec.inliers
+    precision, recall = nr.outlier_precision_recall(found, seq.outliers, seq.visible)
+    assert float(recall) == 1.0
+    assert float(precision) == 1.0
+    inliers = seq.visible & ~seq.outliers
+    scale = jnp.sqrt(jnp.mean(seq.W_clean**2))
+    fit = nr.entry_errors(seq.W_clean, rec.W_hat)
+    assert float(jnp.max(jnp.where(inliers, fit, 0.0))) < 1e-6 * float(scale)
+
+
 @pytest.mark.parametrize("noise", [0.0, 1e-6])
-@pytest.mark.parametrize(
-    "make",
-    [
-        pytest.param(partial(nr.bregler_sequence, k=1, n_frames=60, n_points=80), id="bregler-k1"),
-        pytest.param(partial(nr.bregler_sequence, k=2, n_frames=60, n_points=80), id="bregler-k2"),
-        pytest.param(partial(nr.bregler_sequence, k=3, n_frames=60, n_points=80), id="bregler-k3"),
-        pytest.param(partial(nr.deformable_cube, n_frames=60), id="cube-k4"),
-    ],
-)
+@pytest.mark.parametrize("make", [*EXACT_BREGLER, pytest.param(partial(nr.deformable_cube, n_frames=60), id="cube-k4")])
 def test_wang_on_exact_tracks(make, noise):
     # Exact (or nearly exact) tracks: the residual scale is floored at the tracks'
     # precision (residuals.scale_floor), so round-off is not taken for outliers, and the
     # final inliers are judged against their own least-squares fit (robust.RECLASSIFY).
-    k = 4 if make.func is nr.deformable_cube else make.keywords["k"]
     for ratio in (0.0, 0.1):
         seq = make(jax.random.key(3), noise=noise, outlier_ratio=ratio)
-        rec = nr.reconstruct(seq.W, seq.visible, k=k, method="wang", shapes="upgrade")
-        found = seq.visible & ~rec.inliers
+        rec = nr.reconstruct(seq.W, seq.visible, k=_bases(make), method="wang", shapes="upgrade")
         if ratio == 0.0:
-            assert int(found.sum()) == 0
+            assert int((seq.visible & ~rec.inliers).sum()) == 0
             assert bool(rec.status == nr.Status.success)
             continue
-        precision, recall = nr.outlier_precision_recall(found, seq.outliers, seq.visible)
-        assert float(recall) == 1.0
-        assert float(precision) == 1.0
-        inliers = seq.visible & ~seq.outliers
-        scale = jnp.sqrt(jnp.mean(seq.W_clean**2))
-        fit = nr.entry_errors(seq.W_clean, rec.W_hat)
-        assert float(jnp.max(jnp.where(inliers, fit, 0.0))) < 1e-6 * float(scale)
+        _assert_exact_with_outliers(seq, rec)
 
 
-@pytest.mark.parametrize(
-    ("make", "k"),
-    [
-        pytest.param(partial(nr.bregler_sequence, k=1, n_frames=60, n_points=80), 1, id="bregler-k1"),
-        pytest.param(partial(nr.bregler_sequence, k=2, n_frames=60, n_points=80), 2, id="bregler-k2"),
-        pytest.param(partial(nr.bregler_sequence, k=3, n_frames=60, n_points=80), 3, id="bregler-k3"),
-        pytest.param(partial(nr.deformable_cube, n_frames=40), 4, id="cube-k4"),
-    ],
-)
-def test_ke_kanade_on_exact_tracks_with_outliers(make, k):
+@pytest.mark.parametrize("make", [*EXACT_BREGLER, pytest.param(partial(nr.deformable_cube, n_frames=40), id="cube-k4")])
+def test_ke_kanade_on_exact_tracks_with_outliers(make):
     # The L1 alternation run to its tolerance (robust.ke_kanade's rtol) is exact on exact
     # tracks with outliers: the linear programs interpolate the inliers.
     for noise in (0.0, 1e-6):
         seq = make(jax.random.key(3), noise=noise, outlier_ratio=0.1)
-        rec = nr.reconstruct(seq.W, seq.visible, k=k, method="ke_kanade", shapes="upgrade")
-        found = seq.visible & ~rec.inliers
-        precision, recall = nr.outlier_precision_recall(found, seq.outliers, seq.visible)
-        assert float(precision) == float(recall) == 1.0
-        inliers = seq.visible & ~seq.outliers
-        scale = jnp.sqrt(jnp.mean(seq.W_clean**2))
-        fit = nr.entry_errors(seq.W_clean, rec.W_hat)
-        assert float(jnp.max(jnp.where(inliers, fit, 0.0))) < 1e-6 * float(scale)
+        rec = nr.reconstruct(seq.W, seq.visible, k=_bases(make), method="ke_kanade", shapes="upgrade")
+        _assert_exact_with_outliers(seq, rec)
 
 
 @pytest.mark.parametrize("method", ["huber", "l1", "huynh", "ke_kanade"])
