@@ -13,9 +13,10 @@ follows ``jaxnrsfm`` step for step on complete tracks (``method="wang"``):
    from the ``9k x 9k`` eigenproblem, the dominant combination, the shapes with each
    frame's reflection sign from a rigid fit of the back-projected tracks.
 
-Left out: the library's Newton polish of the final fit (``jaxnrsfm.implicit.attach``,
-which exists for the gradients) and the canonical gauge of the output (a rotation of
-the world frame and a sign per basis, free of cost and of effect on ``W_hat`` or e3D).
+Left out: the canonical gauge of the output (a rotation of the world frame and a sign
+per basis, free of cost and of effect on ``W_hat`` or e3D). Neither side pays for the
+library's Newton polish of the final fit (``jaxnrsfm.implicit.attach``): it runs only
+where a result is differentiated.
 """
 
 import numpy as np

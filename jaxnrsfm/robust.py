@@ -195,9 +195,10 @@ def wang(
     and the residual model that weighs the rejected entries in the inliers' least-squares
     fit -- are constants. That fit, step 5's weights and the rejected entries' weight
     computed from it (`anchor_weights`), and the final weighted fit are functions of
-    ``W``, re-attached by `jaxnrsfm.implicit.attach` (the
-    final fit with two Newton polish steps: on exact tracks one left the forward solve
-    reproducible only to ~1e-9, too coarse for a finite-difference check).
+    ``W``, re-attached by `jaxnrsfm.implicit.attach` (the final fit, where differentiated,
+    with two Newton polish steps: on exact tracks one left the differentiated value
+    reproducible only to ~1e-9, too coarse for a finite-difference check; an
+    undifferentiated call skips them).
 
     Two departures from a literal reading, both measured on the paper's cube, both
     needed to match the oracle there (and a limit on how fast the passes' bound falls,
