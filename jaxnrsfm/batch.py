@@ -4,8 +4,8 @@ There is no batched algorithm here, only a choice of how to map
 `jaxnrsfm.pipeline.reconstruct_prepared`:
 
 - ``"loop"`` (the default): a Python loop over the jit-compiled single trial. On a
-  2-core CPU it is the fastest for the robust method (``benchmarks/speed.py``, 100 cube
-  trials of ``wang``: loop 0.25 s/trial, map 0.27, vmap 2.0);
+  2-core CPU it is the fastest for the robust method (``benchmarks/speed.py``, 20 cube
+  trials of ``wang``: loop 0.64 s/trial, map 0.70, vmap 1.19);
 - ``"map"``: ``jax.lax.map``, one trial after another inside one compiled program (what
   a sweep sharded over devices runs on each device);
 - ``"vmap"``: all trials in lockstep: the solvers are while loops, so every trial runs as
