@@ -73,24 +73,23 @@ def _stationarity(Z, args, *, rank):
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(0, 1))
-def _root(rank: int, steps: int, Z: Float[Array, "2m n"], args, polish: Bool[Array, ""]) -> Float[Array, "2m n"]:
+def _root(rank: int, steps: int, Z: Float[Array, "2m n"], args, when: Bool[Array, ""] | None) -> Float[Array, "2m n"]:
     """``Z``, a root of `_stationarity` at ``args``, as a function of ``args``.
 
     Undifferentiated, ``Z`` itself: the solver's answer, stationary to its tolerance.
-    Differentiated, ``Z`` after ``steps`` Newton steps (where ``polish``), and the tangents
-    at that point: the polish serves only the derivative, so only a differentiated call
-    pays for it (`attach`)."""
+    Differentiated, ``Z`` after `_polish` (``steps`` Newton steps, where ``when``), and the
+    tangents at that point: the polish serves only the derivative, so only a differentiated
+    call pays for it (`attach`)."""
     return Z
 
 
 @_root.defjvp
 def _root_jvp(rank, steps, primals, tangents):
     # The implicit function theorem: F(Z(args), args) = 0, so dF/dZ dZ = -dF/dargs dargs.
-    Z, args, polish = primals
+    Z, args, when = primals
     _, t_args, _ = tangents
     stationarity = partial(_stationarity, rank=rank)
-    if steps:
-        Z = jax.lax.cond(polish, partial(_newton_steps, rank, steps, args=args), lambda Z: Z, Z)
+    Z = _polish(rank, steps, Z, args, when)
     _, rhs = jax.jvp(lambda args: stationarity(Z, args), (args,), (t_args,))
     operator = lx.JacobianLinearOperator(stationarity, Z, args)
     return Z, -lx.linear_solve(operator, rhs, _gmres(Z.dtype)).value
@@ -111,11 +110,19 @@ def _newton_step(stationarity, Z: Float[Array, "2m n"], fixed) -> Float[Array, "
     return jnp.where(size(stationarity(polished, fixed)) < size(F), polished, Z)
 
 
-def _newton_steps(rank: int, steps: int, Z: Float[Array, "2m n"], *, args) -> Float[Array, "2m n"]:
+def _polish(rank: int, steps: int, Z: Float[Array, "2m n"], args, when: Bool[Array, ""] | None) -> Float[Array, "2m n"]:
+    # ``steps`` Newton steps on Z; ``when`` (traced) chooses at run time, None: always.
+    # A static "never" is steps = 0, so that its GMRES is not even compiled.
+    if steps == 0:
+        return Z
     stationarity = partial(_stationarity, rank=rank)
-    for _ in range(steps):
-        Z = _newton_step(stationarity, Z, args)
-    return Z
+
+    def newton(Z):
+        for _ in range(steps):
+            Z = _newton_step(stationarity, Z, args)
+        return Z
+
+    return newton(Z) if when is None else jax.lax.cond(when, newton, lambda Z: Z, Z)
 
 
 def attach(
@@ -161,9 +168,10 @@ def attach(
     weights = weights / jax.lax.stop_gradient(jnp.maximum(jnp.max(weights), jnp.finfo(W.dtype).tiny))
     args = (W, weights, jnp.asarray(delta, W.dtype))
     Z = jax.lax.stop_gradient(_em_from_fit(L, args))  # the fixed point, if L is stationary
-    polish = jnp.asarray(polish)
+    if isinstance(polish, bool):
+        steps, when = (steps if polish else 0), None
+    else:
+        when = polish
     if polish_value:
-        fixed = jax.lax.stop_gradient(args)
-        Z = jax.lax.cond(polish, partial(_newton_steps, rank, steps, args=fixed), lambda Z: Z, Z)
-        steps = 0
-    return lowrank(_root(rank, steps, Z, args, polish), rank)
+        Z, steps = _polish(rank, steps, Z, jax.lax.stop_gradient(args), when), 0
+    return lowrank(_root(rank, steps, Z, args, when), rank)
