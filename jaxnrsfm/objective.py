@@ -17,8 +17,19 @@ The unknowns are ``(M, S)`` together; the Jacobian is never formed (it would be
 normal equations by conjugate gradients on Jacobian-vector products (``lineax.Normal``
 around ``lineax.CG``). The ``r^2``-dimensional gauge ``(M G, G^-1 S)`` leaves the normal
 matrix singular; the damping makes it definite and CG never needs more.
+
+CG is preconditioned by the inverse of the normal matrix's diagonal blocks (`BlockJacobiNormal`):
+a residual ``e_ij`` involves only frame ``i``'s two rows of ``M`` and point ``j``'s column of
+``S``, so those blocks (``2r x 2r`` a frame, ``r x r`` a point) are exactly what one
+alternating least-squares step inverts, and they are read off the operator with ``3r``
+products. On the 40-frame cube (sigma 2, 10% outliers, rank 13) it halved the Huber fit's
+time (8.2 to 4.0 s) and cut the L1 fit's from 12.0 to 4.7 s, for the same fits; the coupling
+of ``M`` and ``S``, which the blocks leave out, is what CG still iterates on.
 """
 
+from typing import Any
+
+import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
@@ -28,6 +39,51 @@ from .tracks import row_mask
 
 L1_DELTA = 0.1
 """``delta``, in robust scales, of the Huber loss that stands in for L1."""
+
+
+def _block_inverse(normal: lx.AbstractLinearOperator) -> lx.AbstractLinearOperator:
+    """The inverse of the diagonal blocks of the normal matrix ``normal`` on ``(M, S)``:
+    frame ``i``'s rows ``2i, 2i + 1`` of ``M`` (coupled by the loss on each entry's
+    2-vector residual) and point ``j``'s column of ``S``, as a positive definite operator."""
+    M_shape, S_shape = (x.shape for x in normal.in_structure())
+    (two_m, r), n = M_shape, S_shape[1]
+    dtype = normal.in_structure()[0].dtype
+    eye = jnp.eye(r, dtype=dtype)
+    # Probe (c, l): ones in column l of M's rows of parity c; its product's M part holds,
+    # in frame i's rows, column (c, l) of that frame's block. Likewise S's row l for the points.
+    frame_probes = jnp.zeros((2, r, two_m, r), dtype).at[0, :, 0::2].set(eye[:, None]).at[1, :, 1::2].set(eye[:, None])
+    frame_probes = frame_probes.reshape(2 * r, two_m, r)
+    point_probes = jnp.broadcast_to(eye[:, :, None], (r, r, n))
+    frame = jax.vmap(lambda v: normal.mv((v, jnp.zeros(S_shape, dtype)))[0])(frame_probes)
+    point = jax.vmap(lambda v: normal.mv((jnp.zeros(M_shape, dtype), v))[1])(point_probes)
+    frame_blocks = frame.reshape(2 * r, two_m // 2, 2 * r).transpose(1, 2, 0)  # (m, 2r, 2r)
+    point_blocks = point.transpose(2, 1, 0)  # (n, r, r)
+    # One batched inversion (two independent batched LAPACK calls in one program have
+    # deadlocked on a 2-core CPU, README): the point blocks padded to 2r with the identity.
+    pad = jnp.zeros((n, 2 * r, 2 * r), dtype).at[:, :r, :r].set(point_blocks).at[:, r:, r:].set(eye)
+    blocks = jnp.concatenate([frame_blocks, pad])
+    # The damping keeps each block definite; a relative jitter guards the undamped limit.
+    jitter = 1e3 * jnp.finfo(dtype).eps * jnp.trace(blocks, axis1=1, axis2=2) / (2 * r)
+    inverse = jnp.linalg.inv(blocks + jitter[:, None, None] * jnp.eye(2 * r, dtype=dtype))
+    frame_inv, point_inv = inverse[: two_m // 2], inverse[two_m // 2 :, :r, :r]
+
+    def apply(y):
+        dM, dS = y
+        dM = jnp.einsum("iab,ib->ia", frame_inv, dM.reshape(two_m // 2, 2 * r)).reshape(M_shape)
+        return dM, jnp.einsum("jab,bj->aj", point_inv, dS)
+
+    return lx.FunctionLinearOperator(apply, normal.in_structure(), lx.positive_semidefinite_tag)
+
+
+class BlockJacobiNormal(lx.Normal):
+    """``lineax.Normal`` around ``lineax.CG``, with CG preconditioned by `_block_inverse` of
+    the normal matrix it is given (the module docstring says why). For the operator of
+    `robust_factorize`'s Levenberg--Marquardt steps only: it assumes unknowns ``(M, S)``."""
+
+    def init(self, operator: lx.AbstractLinearOperator, options: dict[str, Any]):
+        inner_state, tall, transpose, inner_options = super().init(operator, options)
+        normal = inner_state[0]  # CG's state: the (linearised) normal operator first
+        return inner_state, tall, transpose, {**inner_options, "preconditioner": _block_inverse(normal)}
 
 
 def huber_residuals(E: Float[Array, "2m n"], mask: Bool[Array, "m n"], delta: Float[Array, ""]) -> Float[Array, "2m n"]:
@@ -72,10 +128,10 @@ def robust_factorize(
         return huber_residuals(W - M @ S, visible, delta)
 
     # The normal matrix is ill conditioned (the singular values of W span orders of
-    # magnitude, and the gauge is only damped away): CG needs hundreds of iterations, and
-    # a CG that stops short makes the whole solve report failure.
+    # magnitude, and the gauge is only damped away): CG needs tens to hundreds of
+    # iterations, and a CG that stops short makes the whole solve report failure.
     cg = lx.CG(rtol=1e-6, atol=1e-10, max_steps=cg_steps)
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=rtol, linear_solver=lx.Normal(cg))
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=rtol, linear_solver=BlockJacobiNormal(cg))
     sol = optx.least_squares(residuals, solver, (M0, S0), max_steps=max_steps, throw=False)
     M, S = sol.value
     return M, S, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
