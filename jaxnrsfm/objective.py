@@ -32,6 +32,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import lineax as lx
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
@@ -121,6 +122,12 @@ def robust_factorize(
     Returns ``M, S``, the steps taken and whether the solver met its tolerance; it never
     raises, so one bad trial in a batch cannot abort the others (``throw=False``).
     """
+    # optimistix damps the step in the default float dtype: float64 when x64 is enabled,
+    # where a float32 problem failed lineax's structure check. Such a problem is solved in
+    # float64 and returned in float32.
+    dtype = W.dtype
+    work = jnp.promote_types(dtype, jax.dtypes.canonicalize_dtype(jnp.float64))
+    W, M0, S0, delta = (jnp.asarray(x, work) for x in (W, M0, S0, delta))
     W = jnp.where(row_mask(visible), W, 0.0)
 
     def residuals(params, _):
@@ -130,8 +137,12 @@ def robust_factorize(
     # The normal matrix is ill conditioned (the singular values of W span orders of
     # magnitude, and the gauge is only damped away): CG needs tens to hundreds of
     # iterations, and a CG that stops short makes the whole solve report failure.
-    cg = lx.CG(rtol=1e-6, atol=1e-10, max_steps=cg_steps)
+    # In float32 CG cannot reach these tolerances, and a CG that fails ends the solve at
+    # its first step (Huber and L1 returned the least-squares start): they are floored at
+    # sqrt(eps) and 1e3 eps of the dtype (float64's are above both).
+    eps = float(np.finfo(work).eps)
+    cg = lx.CG(rtol=max(1e-6, np.sqrt(eps)), atol=max(1e-10, 1e3 * eps), max_steps=cg_steps)
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=rtol, linear_solver=BlockJacobiNormal(cg))
     sol = optx.least_squares(residuals, solver, (M0, S0), max_steps=max_steps, throw=False)
     M, S = sol.value
-    return M, S, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+    return M.astype(dtype), S.astype(dtype), sol.stats["num_steps"], sol.result == optx.RESULTS.successful
