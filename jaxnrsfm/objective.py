@@ -46,9 +46,10 @@ def _block_inverse(normal: lx.AbstractLinearOperator) -> lx.AbstractLinearOperat
     """The inverse of the diagonal blocks of the normal matrix ``normal`` on ``(M, S)``:
     frame ``i``'s rows ``2i, 2i + 1`` of ``M`` (coupled by the loss on each entry's
     2-vector residual) and point ``j``'s column of ``S``, as a positive definite operator."""
-    M_shape, S_shape = (x.shape for x in normal.in_structure())
+    M_struct, S_struct = normal.in_structure()
+    M_shape, S_shape, dtype = M_struct.shape, S_struct.shape, M_struct.dtype
     (two_m, r), n = M_shape, S_shape[1]
-    dtype = normal.in_structure()[0].dtype
+    m = two_m // 2
     eye = jnp.eye(r, dtype=dtype)
     # Probe (c, l): ones in column l of M's rows of parity c; its product's M part holds,
     # in frame i's rows, column (c, l) of that frame's block. Likewise S's row l for the points.
@@ -57,7 +58,7 @@ def _block_inverse(normal: lx.AbstractLinearOperator) -> lx.AbstractLinearOperat
     point_probes = jnp.broadcast_to(eye[:, :, None], (r, r, n))
     frame = jax.vmap(lambda v: normal.mv((v, jnp.zeros(S_shape, dtype)))[0])(frame_probes)
     point = jax.vmap(lambda v: normal.mv((jnp.zeros(M_shape, dtype), v))[1])(point_probes)
-    frame_blocks = frame.reshape(2 * r, two_m // 2, 2 * r).transpose(1, 2, 0)  # (m, 2r, 2r)
+    frame_blocks = frame.reshape(2 * r, m, 2 * r).transpose(1, 2, 0)  # (m, 2r, 2r)
     point_blocks = point.transpose(2, 1, 0)  # (n, r, r)
     # One batched inversion (two independent batched LAPACK calls in one program have
     # deadlocked on a 2-core CPU, README): the point blocks padded to 2r with the identity.
@@ -66,11 +67,11 @@ def _block_inverse(normal: lx.AbstractLinearOperator) -> lx.AbstractLinearOperat
     # The damping keeps each block definite; a relative jitter guards the undamped limit.
     jitter = 1e3 * jnp.finfo(dtype).eps * jnp.trace(blocks, axis1=1, axis2=2) / (2 * r)
     inverse = jnp.linalg.inv(blocks + jitter[:, None, None] * jnp.eye(2 * r, dtype=dtype))
-    frame_inv, point_inv = inverse[: two_m // 2], inverse[two_m // 2 :, :r, :r]
+    frame_inv, point_inv = inverse[:m], inverse[m:, :r, :r]
 
     def apply(y):
         dM, dS = y
-        dM = jnp.einsum("iab,ib->ia", frame_inv, dM.reshape(two_m // 2, 2 * r)).reshape(M_shape)
+        dM = jnp.einsum("iab,ib->ia", frame_inv, dM.reshape(m, 2 * r)).reshape(M_shape)
         return dM, jnp.einsum("jab,bj->aj", point_inv, dS)
 
     return lx.FunctionLinearOperator(apply, normal.in_structure(), lx.positive_semidefinite_tag)

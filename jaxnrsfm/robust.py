@@ -440,11 +440,12 @@ def huber(
     _, model = classify(W, M @ S, visible, threshold)
     d = (L1_DELTA if delta is None else delta) * model.sigma
     constant = jax.lax.stop_gradient
+    fixed = constant(W)
     budget = dict(max_steps=max_steps, rtol=max(rtol, 1e-8))
-    M, S, steps, converged = robust_factorize(constant(W), visible, constant(M), constant(S), constant(d), **budget)
+    M, S, steps, converged = robust_factorize(fixed, visible, constant(M), constant(S), constant(d), **budget)
     if delta is None:
         M, S, shrink, more, converged = _l1_continuation(
-            constant(W), visible, M, S, constant(d), constant(model.sigma), converged, **budget
+            fixed, visible, M, S, constant(d), constant(model.sigma), converged, **budget
         )
         d, steps = d * shrink, steps + more
     _, M, S = attach(W, visible, M @ S, rank, d)

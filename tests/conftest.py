@@ -79,6 +79,14 @@ def key():
     return jax.random.key(0)
 
 
+@pytest.fixture
+def restore_x64():
+    """For a test that switches x64 (or runs a command that does): float64 again after it,
+    the choice made above."""
+    yield
+    jax.config.update("jax_enable_x64", True)
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_programs():
     """Drop every compiled program when a test module is done.

@@ -138,12 +138,6 @@ def test_reconstruct_exports_and_counts_outliers(tmp_path):
     assert all((mesh.faces == meshes[0].faces).all() and len(mesh.vertices) == W.shape[1] for mesh in meshes)
 
 
-@pytest.fixture
-def restore_x64():
-    yield
-    jax.config.update("jax_enable_x64", True)  # the command sets it; conftest's choice must survive
-
-
 def test_reconstruct_float32(tmp_path, restore_x64):
     np.savez(tmp_path / "t.npz", W=_low_rank_tracks())
     summary = _summary(_run(tmp_path / "t.npz", "--k", 1, "--float32", "--out", tmp_path / "o.npz"))

@@ -162,23 +162,14 @@ def test_huber_and_l1_resist_outliers(method):
     assert error < 3 * floor
 
 
-@pytest.fixture
-def float32_default():
-    """float32 the default float dtype for the test (x64 off), float64 again after it."""
-    jax.config.update("jax_enable_x64", False)
-    yield
-    jax.config.update("jax_enable_x64", True)
-
-
 @pytest.mark.parametrize("x64", [False, True])
 @pytest.mark.parametrize("method", ["huber", "l1"])
-def test_huber_and_l1_in_float32(method, x64, request):
+def test_huber_and_l1_in_float32(method, x64, restore_x64):
     # float32 tracks, x64 off: Levenberg-Marquardt's CG tolerances are floored at float32's
     # precision (at float64's the first CG failed and the solve returned the least-squares
     # start, RMS 4.43 and 6.11). x64 on: optimistix damps in float64, and the solve is
     # promoted to it (it raised a structure mismatch).
-    if not x64:
-        request.getfixturevalue("float32_default")
+    jax.config.update("jax_enable_x64", x64)
     seq = nr.bregler_sequence(
         jax.random.key(3), k=2, n_frames=30, n_points=40, noise=1.0, outlier_ratio=0.1, dtype=jnp.float32
     )
