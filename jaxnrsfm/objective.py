@@ -140,10 +140,15 @@ def robust_factorize(
     # iterations, and a CG that stops short makes the whole solve report failure.
     # In float32 CG cannot reach these tolerances, and a CG that fails ends the solve at
     # its first step (Huber and L1 returned the least-squares start): they are floored at
-    # sqrt(eps) and 1e3 eps of the dtype (float64's are above both).
+    # sqrt(eps) and 1e3 eps of the dtype (float64's are above both). So is LM's own
+    # tolerance, at sqrt(eps) / 2: a relative change d of the parameters near the minimum
+    # changes the loss by d^2, so float32 resolves the minimiser to about sqrt(eps) and met
+    # 1e-8 only by chance (a Huber solve whose scale moved by round-off wobbled for 500
+    # steps at loss 46711.77 +- 0.01; 45 steps at 1e-4). float64's 1e-8 is above it.
     eps = float(np.finfo(work).eps)
     cg = lx.CG(rtol=max(1e-6, np.sqrt(eps)), atol=max(1e-10, 1e3 * eps), max_steps=cg_steps)
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=rtol, linear_solver=BlockJacobiNormal(cg))
+    tol = max(rtol, np.sqrt(eps) / 2)
+    solver = optx.LevenbergMarquardt(rtol=tol, atol=tol, linear_solver=BlockJacobiNormal(cg))
     sol = optx.least_squares(residuals, solver, (M0, S0), max_steps=max_steps, throw=False)
     M, S = sol.value
     return M.astype(dtype), S.astype(dtype), sol.stats["num_steps"], sol.result == optx.RESULTS.successful

@@ -48,8 +48,14 @@ above 2: the inliers are fitted by least squares, which presumes a finite varian
 ``nu = 1`` or 2 the inlier tail also explained the outliers: on Akhter's stretch with 10%
 outliers the fit took ``nu = 1``, a threshold of 56 ``sigma`` and a recall of 0.87)."""
 
-EM_STEPS = 40
-"""EM iterations per ``nu`` (a fixed count: jit- and vmap-friendly)."""
+EM_CYCLES = 25
+"""Most accelerated EM cycles (SQUAREM, three EM steps each) per ``nu``; a fit stops
+earlier once a cycle moves ``(log sigma, logit eps)`` by less than ``sqrt(eps)`` of the
+dtype. Plain EM converges sublinearly on motion capture, where the likelihood is flat in
+the outlier fraction as it heads for `MIN_EPS`: 40 plain steps (the earlier fixed count)
+left the threshold of the rank-3k residuals of the Akhter sequences (k = 2, 3) up to 22%
+from its limit (dance, k = 2), 80 steps up to 11%. With acceleration all ten were within
+3e-4 of 20000 plain steps; the paper's cube stops after 6 or 7 cycles."""
 
 MIN_FACTOR = 3.0
 """Smallest threshold multiple ``T / sigma``: below it an inlier is lost with probability
@@ -105,27 +111,72 @@ def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
     # EM for (eps, sigma) at fixed nu. A t-distributed 2-vector is Gaussian given a
     # Gamma-distributed precision; its expected value u = (nu + 2) / (nu + a^2/sigma^2)
     # down-weights the tail in the scale update (1 for Rayleigh).
-    def responsibilities(sigma, eps):
-        log_in = jnp.log1p(-eps) + log_inlier_density(a, sigma, nu)
-        log_out = jnp.log(eps) - jnp.log(A)
-        r = jax.nn.sigmoid(log_in - log_out)
-        return jnp.where(mask, r, 0.0), jnp.logaddexp(log_in, log_out)
-
     finite = jnp.isfinite(nu)
     nu_ = jnp.where(finite, nu, 1.0)  # the Rayleigh branch must not see inf (double where)
 
-    def step(_, carry):
-        sigma, eps = carry
-        r, _ = responsibilities(sigma, eps)
+    def em(x, data):
+        # One EM step from x = (log sigma, logit eps), and the log-likelihood at x.
+        a, log_a, A, floor = data
+        sigma, eps = jnp.exp(x[0]), jax.nn.sigmoid(x[1])
         z = (a / sigma) ** 2
+        tail = jnp.where(finite, -(nu_ + 2) / 2 * jnp.log1p(z / nu_), -z / 2)
+        # The log-odds of inlier against outlier, and from them the responsibility
+        # (sigmoid) and the log-likelihood (log_out + softplus) with one exponential.
+        log_out = jnp.log(eps) - jnp.log(A)
+        odds = jnp.log1p(-eps) + log_a - 2 * x[0] + tail - log_out
+        small = jnp.exp(-jnp.abs(odds))
+        r = jnp.where(mask, jnp.where(odds >= 0, 1.0, small) / (1.0 + small), 0.0)
+        log_likelihood = jnp.sum(jnp.where(mask, log_out + jnp.maximum(odds, 0.0) + jnp.log1p(small), 0.0))
         u = jnp.where(finite, (nu_ + 2) / (nu_ + z), 1.0)
         sigma = jnp.sqrt(jnp.sum(r * u * a**2) / jnp.maximum(2 * jnp.sum(r), 1.0))
         eps = jnp.clip(1.0 - jnp.sum(r) / jnp.maximum(mask.sum(), 1), MIN_EPS, 0.5)
-        return jnp.maximum(sigma, floor).astype(a.dtype), eps.astype(a.dtype)
+        return _unconstrained(jnp.maximum(sigma, floor), eps), log_likelihood
 
-    sigma, eps = jax.lax.fori_loop(0, EM_STEPS, step, (sigma0.astype(a.dtype), eps0.astype(a.dtype)))
-    _, log_p = responsibilities(sigma, eps)
-    return sigma, eps, jnp.sum(jnp.where(mask, log_p, 0.0))
+    # log p_in(a) = log a - 2 log sigma + tail, with log a computed once.
+    data = (a, jnp.log(jnp.maximum(a, jnp.finfo(a.dtype).tiny)), A, floor)
+    fixed = jax.lax.stop_gradient(data)
+    tol = jnp.sqrt(jnp.finfo(a.dtype).eps)
+
+    def cycle(carry):
+        # SQUAREM (Varadhan & Roland 2008, scheme S3): two EM steps, a step along their
+        # extrapolation, and one EM step from there to stabilise it; kept only where the
+        # extrapolated point is at least as likely as the first step's (EM never lowers
+        # the likelihood after it), otherwise the two plain steps.
+        x0, cycles, _ = carry
+        x1, _ = em(x0, fixed)
+        x2, ll1 = em(x1, fixed)
+        r, v = x1 - x0, x2 - 2 * x1 + x0
+        alpha = jnp.minimum(-jnp.sqrt(jnp.sum(r**2) / jnp.maximum(jnp.sum(v**2), jnp.finfo(a.dtype).tiny)), -1.0)
+        x3, ll = em(x0 - 2 * alpha * r + alpha**2 * v, fixed)
+        x3 = jnp.where((ll >= ll1) & jnp.all(jnp.isfinite(x3)), x3, x2)
+        return x3, cycles + 1, jnp.max(jnp.abs(x3 - x0))
+
+    def going(carry):
+        _, cycles, change = carry
+        return (cycles < EM_CYCLES) & (change > tol)
+
+    x0 = _unconstrained(sigma0.astype(a.dtype), eps0.astype(a.dtype))
+    x, _, _ = jax.lax.while_loop(going, cycle, (jax.lax.stop_gradient(x0), 0, jnp.asarray(jnp.inf, a.dtype)))
+    # The gradient by the implicit function theorem at the fixed point x = F(x, data),
+    # not through the loop (which reverse mode cannot differentiate):
+    # dx = (I - F_x)^-1 F_data ddata. The correction is zero in value.
+    F, log_likelihood = em(x, data)
+    I_minus_J = jnp.eye(2, dtype=a.dtype) - jax.jacfwd(lambda x: em(x, fixed)[0])(x)
+    x = x + _solve2(jax.lax.stop_gradient(I_minus_J), F - jax.lax.stop_gradient(F))
+    return jnp.exp(x[0]), jax.nn.sigmoid(x[1]), log_likelihood
+
+
+def _solve2(A, b):
+    # A 2 x 2 system in closed form: no LAPACK call (two independent batched LAPACK calls
+    # in one program have deadlocked on a 2-core CPU, README).
+    det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+    return jnp.stack([A[1, 1] * b[0] - A[0, 1] * b[1], A[0, 0] * b[1] - A[1, 0] * b[0]]) / det
+
+
+def _unconstrained(sigma, eps):
+    # (log sigma, logit eps): the coordinates in which SQUAREM extrapolates, so that any
+    # extrapolated point is a valid scale and fraction.
+    return jnp.stack([jnp.log(sigma), jnp.log(eps) - jnp.log1p(-eps)])
 
 
 def _threshold(sigma, nu, eps, A):
