@@ -41,46 +41,30 @@ def log_inlier_density(a, sigma, nu):
     return np.log(np.maximum(a, 1e-300)) - 2 * np.log(sigma) + tail
 
 
-def residual_threshold(errors, visible, floor, nus=(3, 4, 6, 10, 20, 50, np.inf), cycles=25):
-    """The residual model of ``jaxnrsfm.residuals``: per nu, EM on (eps, sigma) accelerated
-    by SQUAREM in (log sigma, logit eps) until a cycle moves them by less than sqrt(eps);
-    the nu of highest likelihood; the boundary where the inlier component stops being the
-    likelier."""
+def residual_threshold(errors, visible, floor, nus=(3, 4, 6, 10, 20, 50, np.inf), steps=10000):
+    """The residual model of ``jaxnrsfm.residuals``: per nu, EM on (eps, sigma) to its limit
+    (a step that moves them by less than sqrt(eps) relative; the library adds Newton steps,
+    which the cube does not need); the nu of highest likelihood; the boundary where the
+    inlier component stops being the likelier."""
     a = errors[visible]
     A = max(a.max(), floor)
     sigma0 = robust_scale(errors, visible, floor)
     eps0 = np.clip(np.mean(a > 6 * sigma0), 1e-3, 0.5)
-    log_a = np.log(np.maximum(a, 1e-300))
-
-    def em(x, nu):  # one EM step from x = (log sigma, logit eps), and the log-likelihood at x
-        sigma, eps = np.exp(x[0]), 1 / (1 + np.exp(-x[1]))
-        z = (a / sigma) ** 2
-        tail = -z / 2 if np.isinf(nu) else -(nu + 2) / 2 * np.log1p(z / nu)
-        log_in = np.log1p(-eps) + log_a - 2 * x[0] + tail
-        log_out = np.log(eps) - np.log(A)
-        r = expit(log_in - log_out)
-        u = 1.0 if np.isinf(nu) else (nu + 2) / (nu + z)
-        sigma = max(np.sqrt(np.sum(r * u * a**2) / max(2 * r.sum(), 1.0)), floor)
-        eps = np.clip(1 - r.sum() / a.size, 1e-6, 0.5)
-        return np.array([np.log(sigma), np.log(eps) - np.log1p(-eps)]), np.sum(np.logaddexp(log_in, log_out))
-
     best = None
     for nu in nus:
-        x0 = np.array([np.log(sigma0), np.log(eps0) - np.log1p(-eps0)])
-        for _ in range(cycles):
-            x1, _ = em(x0, nu)
-            x2, ll1 = em(x1, nu)
-            r, v = x1 - x0, x2 - 2 * x1 + x0
-            alpha = min(-np.sqrt(np.sum(r**2) / max(np.sum(v**2), 1e-300)), -1.0)
-            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # a far extrapolation
-                x3, ll = em(x0 - 2 * alpha * r + alpha**2 * v, nu)
-            x3 = x3 if ll >= ll1 and np.all(np.isfinite(x3)) else x2
-            x0, change = x3, np.max(np.abs(x3 - x0))
-            if change <= np.sqrt(np.finfo(float).eps):
+        sigma, eps = sigma0, eps0
+        for _ in range(steps + 1):
+            log_in = np.log1p(-eps) + log_inlier_density(a, sigma, nu)
+            log_out = np.log(eps) - np.log(A)
+            r = expit(log_in - log_out)
+            u = 1.0 if np.isinf(nu) else (nu + 2) / (nu + (a / sigma) ** 2)
+            new = max(np.sqrt(np.sum(r * u * a**2) / max(2 * r.sum(), 1.0)), floor), np.clip(1 - r.mean(), 1e-6, 0.5)
+            if np.allclose(new, (sigma, eps), rtol=np.sqrt(np.finfo(float).eps), atol=0):
                 break
-        _, ll = em(x0, nu)
+            sigma, eps = new
+        ll = np.sum(np.logaddexp(log_in, log_out))
         if best is None or ll > best[0]:
-            best = (ll, np.exp(x0[0]), 1 / (1 + np.exp(-x0[1])), nu)
+            best = (ll, sigma, eps, nu)
     _, sigma, eps, nu = best
     mode = sigma * (1.0 if np.isinf(nu) else np.sqrt(nu / (nu + 1)))
     target = np.log(eps) - np.log(A) - np.log1p(-eps)
