@@ -49,15 +49,15 @@ above 2: the inliers are fitted by least squares, which presumes a finite varian
 outliers the fit took ``nu = 1``, a threshold of 56 ``sigma`` and a recall of 0.87)."""
 
 FIT_STEPS = 25
-"""Most steps of the fit per ``nu``, each an EM step followed by a safeguarded Newton step
-on ``(log sigma, logit eps)``; a fit stops earlier once a step moves them by less than
-``sqrt(eps)`` of the dtype (4-6 steps on the paper's cube, up to 18 where the outlier
-fraction goes to `MIN_EPS`). Plain EM crawls on motion capture, where the likelihood is
-flat in the outlier fraction: 40 EM steps (the earlier fixed count) left the threshold of
-the rank-3k residuals of the Akhter sequences (k = 2, 3) up to 22% from its limit (dance,
-k = 2), 80 steps up to 11%; now all ten agree with 20000 EM steps to the 4 digits
-compared. Per-point and per-frame scales (lognormal, 0.5) on Rayleigh residuals are such a
-case too (`tests/test_robust.py`)."""
+"""Most steps of the fit per ``nu``, each a safeguarded Newton step on ``(log sigma,
+logit eps)`` or, where it is refused, an EM step. A fit stops earlier, once a step moves
+them by less than ``sqrt(eps)`` of the dtype: 6 steps on the paper's cube, 5-16 on the
+Akhter sequences' rank-6 residuals. Plain EM crawls on motion capture, where the
+likelihood is flat in the outlier fraction: 40 EM steps (the earlier fixed count) left
+the threshold of the rank-3k residuals of the Akhter sequences (k = 2, 3) up to 22% from
+its limit (dance, k = 2), 80 steps up to 11%; now all ten agree with 20000 EM steps to
+the 4 digits compared. Rayleigh residuals with lognormal per-frame and per-point scales
+are such a case too (`tests/test_robust.py`)."""
 
 MIN_FACTOR = 3.0
 """Smallest threshold multiple ``T / sigma``: below it an inlier is lost with probability
@@ -148,20 +148,19 @@ def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
     bounds = low, jnp.array([jnp.inf, 0.0], a.dtype)
 
     def cycle(carry):
-        # An EM step (it never lowers the likelihood), then a Newton step on the
-        # likelihood from there, kept where the Hessian is negative definite and the
-        # likelihood did not fall beyond its round-off: EM alone crawls where the
-        # likelihood is flat in eps. (SQUAREM's extrapolation, tried first, overshot
-        # there and was refused most of the time: 1.7% off the threshold after 25 cycles.)
+        # A Newton step on the likelihood, kept where the Hessian is negative definite
+        # and the likelihood did not fall beyond its round-off; otherwise an EM step
+        # (which never lowers it). EM alone crawls where the likelihood is flat in eps;
+        # so did SQUAREM, tried first: its extrapolations overshot there and were
+        # refused (1.7% off the threshold after 25 cycles, lognormal scales).
         x0, cycles, _ = carry
-        x1, _ = em(x0, fixed)
-        ll1 = likelihood(x1)
+        x1, ll0 = em(x0, fixed)
         # Forward mode over forward mode: two parameters, and no residuals stored.
         gradient = jax.jacfwd(likelihood)
-        H = jax.jacfwd(gradient)(x1)
-        x2 = jnp.clip(x1 - _solve2(H, gradient(x1)), *bounds)
+        H = jax.jacfwd(gradient)(x0)
+        x2 = jnp.clip(x0 - _solve2(H, gradient(x0)), *bounds)
         ll2 = likelihood(x2)
-        ok = (H[0, 0] < 0) & (H[0, 0] * H[1, 1] > H[0, 1] * H[1, 0]) & (ll2 >= ll1 - slack * jnp.abs(ll1))
+        ok = (H[0, 0] < 0) & (H[0, 0] * H[1, 1] > H[0, 1] * H[1, 0]) & (ll2 >= ll0 - slack * jnp.abs(ll0))
         x = jnp.where(ok & jnp.all(jnp.isfinite(x2)), x2, x1)
         return x, cycles + 1, jnp.max(jnp.abs(x - x0))
 
