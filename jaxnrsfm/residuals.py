@@ -13,9 +13,10 @@ residual is Student-t with scale ``sigma`` and ``nu`` degrees of freedom:
     ``p_in(a) = (a / sigma^2) (1 + a^2 / (nu sigma^2))^(-(nu + 2) / 2)``
 
 (``nu = inf``: the Rayleigh law of Gaussian image noise). ``(eps, sigma)`` are fitted by
-EM (with Newton steps) for every ``nu`` of `NU` and the ``nu`` of highest likelihood is kept. An entry
-is an inlier where the inlier component is the more likely, ``(1 - eps) p_in(a) >= eps /
-A``, on the decreasing branch of ``p_in``: that is one threshold ``a <= T``.
+maximum likelihood (EM with Newton steps) for every ``nu`` of `NU` and the ``nu`` of
+highest likelihood is kept. An entry is an inlier where the inlier component is the more
+likely, ``(1 - eps) p_in(a) >= eps / A``, on the decreasing branch of ``p_in``: that is
+one threshold ``a <= T``.
 
 Why a heavy-tailed inlier law: on the paper's cube the noise is Gaussian, the fitted
 ``nu`` is large, and ``T`` is the Bayes boundary between Rayleigh inliers and uniform
@@ -175,8 +176,10 @@ def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
     # differentiate):
     # dx = (I - F_x)^-1 F_data ddata. The correction is zero in value.
     F, log_likelihood = em(x, data)
-    I_minus_J = jnp.eye(2, dtype=a.dtype) - jax.jacfwd(lambda x: em(x, fixed)[0])(x)
-    x = x + _solve2(jax.lax.stop_gradient(I_minus_J), F - jax.lax.stop_gradient(F))
+    I_minus_J = jax.lax.stop_gradient(jnp.eye(2, dtype=a.dtype) - jax.jacfwd(lambda x: em(x, fixed)[0])(x))
+    # A singular system (EM's map with a unit eigenvalue) would make the zero correction NaN.
+    singular = I_minus_J[0, 0] * I_minus_J[1, 1] == I_minus_J[0, 1] * I_minus_J[1, 0]
+    x = x + _solve2(jnp.where(singular, jnp.eye(2, dtype=a.dtype), I_minus_J), F - jax.lax.stop_gradient(F))
     return jnp.exp(x[0]), jax.nn.sigmoid(x[1]), log_likelihood
 
 
