@@ -53,7 +53,7 @@ def residual_threshold(errors, visible, floor, nus=(3, 4, 6, 10, 20, 50, np.inf)
     best = None
     for nu in nus:
         sigma, eps = sigma0, eps0
-        for _ in range(steps + 1):
+        for _ in range(steps):
             log_in = np.log1p(-eps) + log_inlier_density(a, sigma, nu)
             log_out = np.log(eps) - np.log(A)
             r = expit(log_in - log_out)

@@ -103,11 +103,19 @@ def median_scale(errors: Float[Array, "m n"], mask: Bool[Array, "m n"], floor: F
 
 def log_inlier_density(a: Float[Array, "..."], sigma: Float[Array, ""], nu: Float[Array, ""]) -> Float[Array, "..."]:
     """``log p_in(a)`` of the residual length (module docstring); ``nu = inf`` is Rayleigh."""
-    z = (a / sigma) ** 2
+    return _log_length(a) - 2 * jnp.log(sigma) + _log_tail((a / sigma) ** 2, nu)
+
+
+def _log_length(a):
+    # log a, finite at a = 0.
+    return jnp.log(jnp.maximum(a, jnp.finfo(a.dtype).tiny))
+
+
+def _log_tail(z, nu):
+    # The part of log p_in that depends on z = (a / sigma)^2.
     finite = jnp.isfinite(nu)
-    nu_ = jnp.where(finite, nu, 1.0)
-    tail = jnp.where(finite, -(nu_ + 2) / 2 * jnp.log1p(z / nu_), -z / 2)
-    return jnp.log(jnp.maximum(a, jnp.finfo(a.dtype).tiny)) - 2 * jnp.log(sigma) + tail
+    nu_ = jnp.where(finite, nu, 1.0)  # the Rayleigh branch must not see inf (double where)
+    return jnp.where(finite, -(nu_ + 2) / 2 * jnp.log1p(z / nu_), -z / 2)
 
 
 def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
@@ -122,11 +130,10 @@ def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
         a, log_a, A, floor = data
         sigma, eps = jnp.exp(x[0]), jax.nn.sigmoid(x[1])
         z = (a / sigma) ** 2
-        tail = jnp.where(finite, -(nu_ + 2) / 2 * jnp.log1p(z / nu_), -z / 2)
         # The log-odds of inlier against outlier, and from them the responsibility
         # (sigmoid) and the log-likelihood (log_out + softplus) with one exponential.
         log_out = jnp.log(eps) - jnp.log(A)
-        odds = jnp.log1p(-eps) + log_a - 2 * x[0] + tail - log_out
+        odds = jnp.log1p(-eps) + log_a - 2 * x[0] + _log_tail(z, nu) - log_out
         small = jnp.exp(-jnp.abs(odds))
         r = jnp.where(mask, jnp.where(odds >= 0, 1.0, small) / (1.0 + small), 0.0)
         log_likelihood = jnp.sum(jnp.where(mask, log_out + jnp.maximum(odds, 0.0) + jnp.log1p(small), 0.0))
@@ -135,8 +142,8 @@ def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
         eps = jnp.clip(1.0 - jnp.sum(r) / jnp.maximum(mask.sum(), 1), MIN_EPS, 0.5)
         return _unconstrained(jnp.maximum(sigma, floor), eps), log_likelihood
 
-    # log p_in(a) = log a - 2 log sigma + tail, with log a computed once.
-    data = (a, jnp.log(jnp.maximum(a, jnp.finfo(a.dtype).tiny)), A, floor)
+    # log p_in(a) = log a - 2 log sigma + tail (log_inlier_density), with log a computed once.
+    data = (a, _log_length(a), A, floor)
     fixed = jax.lax.stop_gradient(data)
     tol = jnp.sqrt(jnp.finfo(a.dtype).eps)
     slack = 100 * jnp.finfo(a.dtype).eps
