@@ -126,7 +126,8 @@ def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
     nu_ = jnp.where(finite, nu, 1.0)  # the Rayleigh branch must not see inf (double where)
 
     def em(x, data):
-        # One EM step from x = (log sigma, logit eps), and the log-likelihood at x.
+        # One EM step from x = (log sigma, logit eps); the log-likelihood at x, its
+        # gradient and its Hessian in x (in closed form: no nested autodiff to trace).
         a, log_a, A, floor = data
         sigma, eps = jnp.exp(x[0]), jax.nn.sigmoid(x[1])
         z = (a / sigma) ** 2
@@ -138,18 +139,29 @@ def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
         r = jnp.where(mask, jnp.where(odds >= 0, 1.0, small) / (1.0 + small), 0.0)
         log_likelihood = jnp.sum(jnp.where(mask, log_out + jnp.maximum(odds, 0.0) + jnp.log1p(small), 0.0))
         u = jnp.where(finite, (nu_ + 2) / (nu_ + z), 1.0)
+        count = jnp.maximum(mask.sum(), 1)
+        # d odds / d log sigma = u z - 2 and d odds / d logit eps = -1, so with
+        # r (1 - r) = small / (1 + small)^2 and d(u z)/d log sigma = -2 z w:
+        slope = u * z - 2
+        spread = jnp.where(mask, small / (1.0 + small) ** 2, 0.0)
+        w = jnp.where(finite, u * nu_ / (nu_ + z), 1.0)
+        gradient = jnp.stack([jnp.sum(r * slope), count * (1 - eps) - jnp.sum(r)])
+        cross = -jnp.sum(spread * slope)
+        hessian = jnp.array(
+            [
+                [jnp.sum(spread * slope**2 - 2 * r * w * z), cross],
+                [cross, jnp.sum(spread) - count * eps * (1 - eps)],
+            ]
+        )
         sigma = jnp.sqrt(jnp.sum(r * u * a**2) / jnp.maximum(2 * jnp.sum(r), 1.0))
-        eps = jnp.clip(1.0 - jnp.sum(r) / jnp.maximum(mask.sum(), 1), MIN_EPS, 0.5)
-        return _unconstrained(jnp.maximum(sigma, floor), eps), log_likelihood
+        eps = jnp.clip(1.0 - jnp.sum(r) / count, MIN_EPS, 0.5)
+        return _unconstrained(jnp.maximum(sigma, floor), eps), log_likelihood, gradient, hessian
 
     # log p_in(a) = log a - 2 log sigma + tail (log_inlier_density), with log a computed once.
     data = (a, _log_length(a), A, floor)
     fixed = jax.lax.stop_gradient(data)
     tol = jnp.sqrt(jnp.finfo(a.dtype).eps)
     slack = 100 * jnp.finfo(a.dtype).eps
-
-    def likelihood(x):
-        return em(x, fixed)[1]
 
     # The floor on sigma and eps in [MIN_EPS, 1/2], in those coordinates.
     low = jnp.stack([jnp.log(fixed[3]), jnp.log(jnp.asarray(MIN_EPS, a.dtype)) - jnp.log1p(-MIN_EPS)])
@@ -162,12 +174,9 @@ def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
         # so did SQUAREM, tried first: its extrapolations overshot there and were
         # refused (1.7% off the threshold after 25 cycles, lognormal scales).
         x0, cycles, _ = carry
-        x1, ll0 = em(x0, fixed)
-        # Forward mode over forward mode: two parameters, and no residuals stored.
-        gradient = jax.jacfwd(likelihood)
-        H = jax.jacfwd(gradient)(x0)
-        x2 = jnp.clip(x0 - _solve2(H, gradient(x0)), *bounds)
-        ll2 = likelihood(x2)
+        x1, ll0, gradient, H = em(x0, fixed)
+        x2 = jnp.clip(x0 - _solve2(H, gradient), *bounds)
+        ll2 = em(x2, fixed)[1]
         ok = (H[0, 0] < 0) & (H[0, 0] * H[1, 1] > H[0, 1] * H[1, 0]) & (ll2 >= ll0 - slack * jnp.abs(ll0))
         x = jnp.where(ok & jnp.all(jnp.isfinite(x2)), x2, x1)
         return x, cycles + 1, jnp.max(jnp.abs(x - x0))
@@ -182,7 +191,7 @@ def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
     # EM's fixed point x = F(x, data), not through the loop (which reverse mode cannot
     # differentiate):
     # dx = (I - F_x)^-1 F_data ddata. The correction is zero in value.
-    F, log_likelihood = em(x, data)
+    F, log_likelihood, _, _ = em(x, data)
     I_minus_J = jax.lax.stop_gradient(jnp.eye(2, dtype=a.dtype) - jax.jacfwd(lambda x: em(x, fixed)[0])(x))
     # A singular system (EM's map with a unit eigenvalue) would make the zero correction NaN.
     singular = I_minus_J[0, 0] * I_minus_J[1, 1] == I_minus_J[0, 1] * I_minus_J[1, 0]
