@@ -63,8 +63,10 @@ def test_second_call_loads_compiled_programs_from_the_cache(tmp_path):
     env = {**os.environ, CACHE_ENV: str(tmp_path / "cache")}
     env.pop("JAX_COMPILATION_CACHE_DIR", None)
     first, second = (json.loads(subprocess.run(command, env=env, capture_output=True, check=True).stdout) for _ in "12")
-    assert first["compile_cache_hits"] == 0 and second["compile_cache_hits"] >= 1
-    assert second["compile_s"] < 0.25 * first["compile_s"]  # measured 0.30 s against 3.39 s
+    # (The first call can hit too: a small program it compiles twice under different jit wrappers.)
+    assert second["compile_cache_hits"] > first["compile_cache_hits"]
+    # Measured: 0.14 s against 0.65 s under the tests' XLA flags (conftest), 3.37 s without.
+    assert second["compile_s"] < 0.25 * first["compile_s"], (first, second)
     assert second["rms_reprojection_error"] == first["rms_reprojection_error"]
 
 
