@@ -23,7 +23,9 @@ print(json.dumps(run_sweep(SweepSettings(**{SETTINGS!r}))))
 
 
 def test_four_cpu_devices_match_one():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    # The session's XLA flags (conftest: cheaper compilation) as well, as for the one device below.
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4".strip()
+    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
     done = subprocess.run([sys.executable, "-c", FOUR_DEVICES], env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stderr[-3000:]
     four = json.loads(done.stdout.strip().splitlines()[-1])
