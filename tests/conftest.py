@@ -46,6 +46,9 @@ def _share_compiled_programs() -> None:
     if CACHE_FOLDER not in os.environ:
         os.environ[CACHE_FOLDER] = tempfile.mkdtemp(prefix="jaxnrsfm-tests-")
     os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ[CACHE_FOLDER]
+    # Every program, not only those that took JAX's default of a second to compile: under the
+    # flags below most of the suite's programs compile faster than that.
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 
 
 _share_compiled_programs()
