@@ -12,7 +12,10 @@ def test_strategies_agree():
         jax.random.split(jax.random.key(7), 3)
     )
     recs = {s: nr.reconstruct_batch(seqs.W, k=1, method="wang", strategy=s) for s in nr.batch.STRATEGIES}
-    for strategy in ("map", "vmap"):
+    # Two at a time: a whole batch and one padded with a copy of the last trial.
+    recs["vmap2"] = nr.reconstruct_batch(seqs.W, k=1, method="wang", strategy="vmap", batch_size=2)
+    assert recs["vmap2"].W_hat.shape == seqs.W.shape and (recs["vmap2"].status == nr.Status.success).shape == (3,)
+    for strategy in ("map", "vmap", "vmap2"):
         np.testing.assert_array_equal(recs[strategy].inliers, recs["loop"].inliers)
         np.testing.assert_allclose(recs[strategy].W_hat, recs["loop"].W_hat, rtol=1e-7, atol=1e-7)
     one = nr.reconstruct(seqs.W[1], k=1, method="wang")
@@ -38,3 +41,6 @@ def test_bad_batches():
         nr.reconstruct_batch(np.zeros((12, 20)), k=1)
     with pytest.raises(ValueError, match="unknown strategy"):
         nr.reconstruct_batch(np.zeros((2, 12, 20)), k=1, strategy="pmap")
+    for strategy, size in (("map", 2), ("vmap", 0)):
+        with pytest.raises(ValueError, match="batch_size must be a positive integer"):
+            nr.reconstruct_batch(np.zeros((2, 12, 20)), k=1, strategy=strategy, batch_size=size)
