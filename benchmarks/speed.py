@@ -2,8 +2,8 @@
 points, k = 4, ``method="wang"``) run
 
 (a) as the library runs them: ``jaxnrsfm.reconstruct_batch``, each of its strategies
-    (``loop``, the default, ``map`` and ``vmap``, whose default batch on a CPU is
-    ``jaxnrsfm.batch.CPU_BATCH`` trials), and ``vmap`` over all trials at once;
+    (``loop``, the default, ``map`` and ``vmap``, ``jaxnrsfm.batch.default_batch_size``
+    trials at a time), and ``vmap`` over all trials at once;
 (b) as a Python loop over the jit-compiled single-trial ``jaxnrsfm.reconstruct``;
 (c) by the NumPy/SciPy implementation of the same algorithm in ``numpy_wang.py``.
 
@@ -93,8 +93,7 @@ def main(args) -> None:
     print(f"ratio loop / library       : {runs['(b) loop'][1] / lib_time:6.2f}x  (goal >= 1)")
     vmap_all = runs["(a) vmap all"][1] / runs["(b) loop"][1]
     print(f"ratio vmap / loop          : {runs['(a) vmap'][1] / runs['(b) loop'][1]:6.2f}x  (goal <= 1.5)", end="")
-    at_a_time = nr.batch.CPU_BATCH if jax.default_backend() == "cpu" else T
-    print(f"  ({at_a_time} trials at a time; all {T}: {vmap_all:.2f}x)")
+    print(f"  ({nr.batch.default_batch_size(T)} trials at a time; all {T}: {vmap_all:.2f}x)")
     print(f"per trial in numpy SVDs    : {lib_time / T / svd_time:6.1f}   (goal <= 20)")
     print(f"(library = reconstruct_batch's default strategy, {default[4:]})")
 

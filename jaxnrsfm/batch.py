@@ -35,6 +35,13 @@ CPU_BATCH = 4
 """Trials per vmapped batch on a CPU when ``batch_size`` is not given (module docstring)."""
 
 
+def default_batch_size(trials: int) -> int:
+    """The ``"vmap"`` strategy's trials at a time when ``batch_size`` is not given:
+    `CPU_BATCH` (at most ``trials``) on a CPU, all ``trials`` on an accelerator (module
+    docstring)."""
+    return min(CPU_BATCH, trials) if jax.default_backend() == "cpu" else trials
+
+
 def reconstruct_batch(
     W: ArrayLike,
     visible: ArrayLike | None = None,
@@ -53,8 +60,7 @@ def reconstruct_batch(
     ``outliers`` ``(T, m, n)``). Every trial is validated (before anything is compiled)
     like a single sequence; the result has a leading ``T`` axis and a ``status`` per
     trial, so a trial that fails does not stop the others. ``batch_size`` (``"vmap"``
-    only): trials in lockstep at a time; ``None``: `CPU_BATCH` on a CPU, all on an
-    accelerator."""
+    only): trials in lockstep at a time; ``None``: `default_batch_size`."""
     if strategy not in STRATEGIES:
         raise ValueError(f"unknown strategy {strategy!r}; choose one of {', '.join(STRATEGIES)}")
     if batch_size is not None and (strategy != "vmap" or not isinstance(batch_size, int) or batch_size < 1):
@@ -88,9 +94,7 @@ def reconstruct_batch(
         return jax.tree.map(lambda *xs: jnp.stack(xs), *results)
     if strategy == "map":
         return _mapped(W0, vis, dynamic, static, batch_size=None, **statics)
-    if batch_size is None:
-        batch_size = CPU_BATCH if jax.default_backend() == "cpu" else trials
-    batch_size = min(batch_size, trials)
+    batch_size = min(default_batch_size(trials) if batch_size is None else batch_size, trials)
     # Whole batches only, the last padded with copies of the last trial (dropped after):
     # jax.lax.map would vmap a shorter remainder as a second compiled copy of the pipeline.
     pad = -trials % batch_size
