@@ -44,7 +44,7 @@ import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Bool, Float
 
-from .linalg import lowest_eigenvectors, polar_rows, truncated_svd
+from .linalg import RidgeCholesky, lowest_eigenvectors, polar_rows, truncated_svd
 from .tracks import to_frames
 
 
@@ -120,13 +120,19 @@ def rotation_triple(
     Mi = to_frames(Mn)
     eps = jnp.finfo(M.dtype).eps
     # The minimisers form a manifold (global rotation, mixing of the true triples) where
-    # the Jacobian is rank deficient: a minimum-norm (SVD) Gauss--Newton step converges
+    # the Jacobian is rank deficient: a minimum-norm Gauss--Newton step converges
     # quadratically to it, where LM's damping crawls. On noise-free data the iterates
     # then wander along the manifold at round-off level and never meet the termination
     # test, which is harmless: every point of it is a solution. So the step budget,
     # not the tolerance, ends those solves, and throw=False keeps that from erroring.
+    # The step comes from the normal equations of J's smaller side (J^T J, 3k square, or
+    # J J^T, 2m + 1 square) by a ridged Cholesky factor (RidgeCholesky), not from an SVD
+    # of J: the same costs to 8 digits and the same e3D on the Akhter sequences to the
+    # digit, at a fraction of the time (16 starts in 40 directions, 150 frames of yoga:
+    # 5.8 s -> 0.47 s; the paper's cube, 8 starts in 12: 98 -> 31 ms). Its round-off along
+    # the manifold keeps every solve from the tolerance, so each takes the step budget.
     rank_deficient = lx.AutoLinearSolver(well_posed=False)
-    solver = optx.GaussNewton(rtol=eps**0.6, atol=eps**0.75, linear_solver=rank_deficient)
+    solver = optx.GaussNewton(rtol=eps**0.6, atol=eps**0.75, linear_solver=lx.Normal(RidgeCholesky()))
     # The implicit derivative meets the same manifold: the minimum-norm tangent is one of
     # many, all giving the same rotations and shapes.
     adjoint = optx.ImplicitAdjoint(linear_solver=rank_deficient)
