@@ -102,6 +102,10 @@ def _rotation_residuals(g: Float[Array, "3k 3"], Mn: Float[Array, "2m 3k"]) -> F
     return jnp.concatenate([aa - bb, 2 * ab, jnp.sqrt(Mn.shape[0] / 2.0) * scale[None]])
 
 
+FINISH_STEPS = 4
+"""Minimum-norm Gauss--Newton steps that finish `rotation_triple`'s winning start."""
+
+
 def rotation_triple(
     M: Float[Array, "2m 3k"], g0: Float[Array, "starts 3k 3"], *, max_steps: int = 40, min_scale: float = 0.0
 ) -> Float[Array, "3k 3"]:
@@ -125,28 +129,38 @@ def rotation_triple(
     # then wander along the manifold at round-off level and never meet the termination
     # test, which is harmless: every point of it is a solution. So the step budget,
     # not the tolerance, ends those solves, and throw=False keeps that from erroring.
-    # The step comes from the normal equations of J's smaller side (J^T J, 3k square, or
-    # J J^T, 2m + 1 square) by a ridged Cholesky factor (RidgeCholesky), not from an SVD
-    # of J: the same costs to 8 digits and the same e3D on the Akhter sequences to the
-    # digit, at a fraction of the time (16 starts in 40 directions, 150 frames of yoga:
-    # 5.8 s -> 0.47 s; the paper's cube, 8 starts in 12: 98 -> 31 ms). Its round-off along
-    # the manifold keeps every solve from the tolerance, so each takes the step budget.
+    # Every start's steps come from the normal equations of J's smaller side (J^T J, 3k
+    # square, or J J^T, 2m + 1 square) by a ridged Cholesky factor (RidgeCholesky): its
+    # costs equal the SVD steps' to 8 digits at a fraction of the time. The ridge keeps
+    # weakly determined directions from converging to round-off (noise-free cube: e3D
+    # 3e-6), so the winner is finished by minimum-norm steps from an SVD of J, which
+    # also carry the implicit derivative. Measured (16 starts in 40 directions, 150
+    # frames of yoga: 5.8 s -> 0.53 s; the paper's cube, 8 starts in 12: 98 -> 31 ms).
     rank_deficient = lx.AutoLinearSolver(well_posed=False)
-    solver = optx.GaussNewton(rtol=eps**0.6, atol=eps**0.75, linear_solver=lx.Normal(RidgeCholesky()))
+    ridged = optx.GaussNewton(rtol=eps**0.6, atol=eps**0.75, linear_solver=lx.Normal(RidgeCholesky()))
+    # The finish takes FINISH_STEPS steps whatever their size: from the ridged solve's
+    # constraint residuals (1e-11 of the tracks' scale, noise-free cube) the first step is
+    # below any tolerance on y, and a quadratic step or two reaches round-off (1e-13).
+    exact = optx.GaussNewton(rtol=0.0, atol=0.0, linear_solver=rank_deficient)
     # The implicit derivative meets the same manifold: the minimum-norm tangent is one of
     # many, all giving the same rotations and shapes.
     adjoint = optx.ImplicitAdjoint(linear_solver=rank_deficient)
+    fixed = jax.lax.stop_gradient(Mn)  # the starts only choose where the finish begins
 
     def solve(g):
-        sol = optx.least_squares(_rotation_residuals, solver, g, Mn, max_steps=max_steps, throw=False, adjoint=adjoint)
+        sol = optx.least_squares(_rotation_residuals, ridged, g, fixed, max_steps=max_steps, throw=False)
         scale = jnp.sum((Mi @ sol.value) ** 2, axis=(1, 2))
-        return sol.value, jnp.sum(_rotation_residuals(sol.value, Mn) ** 2), jnp.min(scale) / jnp.median(scale)
+        return sol.value, jnp.sum(_rotation_residuals(sol.value, fixed) ** 2), jnp.min(scale) / jnp.median(scale)
 
     gs, costs, smallest = jax.vmap(solve)(g0)
     costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
     sound = smallest >= min_scale**2
     costs = jnp.where(sound | ~jnp.any(sound), costs, jnp.inf)
-    return gs[jnp.argmin(costs)]
+    best = jax.lax.stop_gradient(gs[jnp.argmin(costs)])
+    finish = optx.least_squares(
+        _rotation_residuals, exact, best, Mn, max_steps=FINISH_STEPS, throw=False, adjoint=adjoint
+    )
+    return finish.value
 
 
 def _rotations_and_trust(Mi: Float[Array, "m 2 3k"], g: Float[Array, "3k 3"]):
