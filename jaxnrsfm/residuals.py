@@ -172,21 +172,25 @@ def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
         # and the likelihood did not fall beyond its round-off; otherwise an EM step
         # (which never lowers it). EM alone crawls where the likelihood is flat in eps;
         # so did SQUAREM, tried first: its extrapolations overshot there and were
-        # refused (1.7% off the threshold after 25 cycles, lognormal scales).
-        x0, cycles, _ = carry
-        x1, ll0, gradient, H = em(x0, fixed)
+        # refused (1.7% off the threshold after 25 cycles, lognormal scales). The carry
+        # holds the EM pass at the current point: a kept Newton step's pass is the next
+        # cycle's, and only a refused one costs a third.
+        x0, here, cycles, _ = carry
+        x1, ll0, gradient, H = here
         x2 = jnp.clip(x0 - _solve2(H, gradient), *bounds)
-        ll2 = em(x2, fixed)[1]
-        ok = (H[0, 0] < 0) & (H[0, 0] * H[1, 1] > H[0, 1] * H[1, 0]) & (ll2 >= ll0 - slack * jnp.abs(ll0))
-        x = jnp.where(ok & jnp.all(jnp.isfinite(x2)), x2, x1)
-        return x, cycles + 1, jnp.max(jnp.abs(x - x0))
+        there = em(x2, fixed)
+        ok = (H[0, 0] < 0) & (H[0, 0] * H[1, 1] > H[0, 1] * H[1, 0]) & (there[1] >= ll0 - slack * jnp.abs(ll0))
+        take = ok & jnp.all(jnp.isfinite(x2))
+        x = jnp.where(take, x2, x1)
+        return x, jax.lax.cond(take, lambda: there, lambda: em(x1, fixed)), cycles + 1, jnp.max(jnp.abs(x - x0))
 
     def going(carry):
-        _, cycles, change = carry
+        _, _, cycles, change = carry
         return (cycles < FIT_STEPS) & (change > tol)
 
-    x0 = _unconstrained(sigma0.astype(a.dtype), eps0.astype(a.dtype))
-    x, _, _ = jax.lax.while_loop(going, cycle, (jax.lax.stop_gradient(x0), 0, jnp.asarray(jnp.inf, a.dtype)))
+    x0 = jax.lax.stop_gradient(_unconstrained(sigma0.astype(a.dtype), eps0.astype(a.dtype)))
+    start = (x0, em(x0, fixed), 0, jnp.asarray(jnp.inf, a.dtype))
+    x, _, _, _ = jax.lax.while_loop(going, cycle, start)
     # The gradient (Huber's scale is differentiated) by the implicit function theorem at
     # EM's fixed point x = F(x, data), not through the loop (which reverse mode cannot
     # differentiate):
@@ -247,7 +251,11 @@ def fit(errors: Float[Array, "m n"], visible: Bool[Array, "m n"], floor: Float[A
     sigma0 = median_scale(errors, visible, floor)
     eps0 = jnp.clip(jnp.sum(visible & (errors > 6 * sigma0)) / jnp.maximum(visible.sum(), 1), 1e-3, 0.5)
     nus = jnp.asarray(NU, errors.dtype)
-    sigmas, epss, lls = jax.vmap(lambda nu: _fit_nu(a, visible, A, sigma0, eps0, floor, nu))(nus)
+    # One nu after the other (lax.map), not in lockstep (vmap): each fit stops at its own
+    # convergence, and its cycle's cond skips an EM pass where the Newton step is kept. The
+    # same fits (to the last digit of eps) on the paper's cube: 30 -> 26 ms, and a vmap of
+    # 4 trials (whose cond runs both branches) 140 -> 128 ms.
+    sigmas, epss, lls = jax.lax.map(lambda nu: _fit_nu(a, visible, A, sigma0, eps0, floor, nu), nus)
     best = jnp.argmax(jnp.where(jnp.isfinite(lls), lls, -jnp.inf))
     sigma, nu, eps = sigmas[best], nus[best], epss[best]
     exact = jnp.nanmedian(jnp.where(visible, errors, jnp.nan)) / RAYLEIGH_MEDIAN < floor
