@@ -112,9 +112,10 @@ def rotation_triple(
     """A column triple ``g`` mapping every frame of ``M`` to a scaled rotation.
 
     Gauss--Newton (optimistix) on the rotation constraints from each start in ``g0``,
-    vmapped; the lowest cost wins among the solutions whose every frame keeps a scale
-    ``|M_i g|`` of at least ``min_scale`` times the median frame's (all of them if none
-    does). The constraints are homogeneous in each frame's ``M_i g``, so a triple that
+    vmapped, at most ``max_steps`` steps each; the lowest cost wins among the solutions
+    whose every frame keeps a scale ``|M_i g|`` of at least ``min_scale`` times the median
+    frame's (all of them if none does), and is finished by `FINISH_STEPS` exact steps.
+    The constraints are homogeneous in each frame's ``M_i g``, so a triple that
     nearly vanishes in some frames satisfies those frames trivially: in a high-rank
     factorization such degenerate minima can have the lowest cost (half of Akhter's dance,
     rank 65: 1.8e-5 against 2.4e-5 for the triple of constant scale; the degenerate one's
