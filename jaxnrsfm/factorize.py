@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .implicit import attach
-from .linalg import svd_factors
+from .linalg import add_ridge, svd_factors
 from .tracks import prepare_tracks, row_mask, to_frames
 from .varpro import varpro
 
@@ -60,15 +60,8 @@ class Factorization(eqx.Module):
 def _solve_batched(
     G: Float[Array, "b r r"], rhs: Float[Array, "b r"], damping: Float[Array, ""] | float = 0.0
 ) -> Float[Array, "b r"]:
-    # A relative ridge keeps an (almost) unconstrained factor finite instead of NaN; at
-    # 1e-12 it is far below the noise of any real problem. In float32 it must also
-    # exceed the round-off of G's eigenvalues (~eps |G|), or a factor that only tiny
-    # weights constrain gets a singular, even indefinite, system: 100 eps there.
-    # ``damping`` adds a larger one.
-    r = G.shape[-1]
-    relative = max(1e-12, 100 * float(jnp.finfo(G.dtype).eps)) + damping
-    ridge = relative * jnp.trace(G, axis1=-2, axis2=-1)[:, None, None] / r + jnp.finfo(G.dtype).tiny
-    return jnp.linalg.solve(G + ridge * jnp.eye(r, dtype=G.dtype), rhs[..., None])[..., 0]
+    # ``damping`` adds a larger ridge than add_ridge's own.
+    return jnp.linalg.solve(add_ridge(G, damping), rhs[..., None])[..., 0]
 
 
 def als_step(

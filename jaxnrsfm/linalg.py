@@ -97,9 +97,23 @@ def polar_rows(A: Float[Array, "... 2 3"]) -> Float[Array, "... 2 3"]:
     return jnp.linalg.solve(sqrt_P, A)
 
 
+def add_ridge(G: Float[Array, "... r r"], damping: Float[Array, ""] | float = 0.0) -> Float[Array, "... r r"]:
+    """``G`` plus a ridge of ``max(1e-12, 100 eps) + damping`` times its mean diagonal.
+
+    A relative ridge keeps an (almost) unconstrained unknown finite instead of NaN; at
+    1e-12 it is far below the noise of any real problem. In float32 it must also exceed
+    the round-off of G's eigenvalues (~eps |G|), or an unknown that only tiny weights
+    constrain gets a singular, even indefinite, system: 100 eps there.
+    """
+    r = G.shape[-1]
+    relative = max(1e-12, 100 * float(jnp.finfo(G.dtype).eps)) + damping
+    ridge = relative * jnp.trace(G, axis1=-2, axis2=-1)[..., None, None] / r + jnp.finfo(G.dtype).tiny
+    return G + ridge * jnp.eye(r, dtype=G.dtype)
+
+
 class RidgeCholesky(lx.Cholesky):
     """lineax's Cholesky solve of a positive semidefinite system with a relative ridge,
-    ``(A + lambda I) x = b``, ``lambda = max(1e-12, 100 eps)`` of ``A``'s mean diagonal.
+    ``(A + lambda I) x = b``, the ridge of `add_ridge`.
 
     For the normal equations of a rank-deficient least-squares problem with more residuals
     than unknowns, ``lx.Normal(RidgeCholesky())`` fits like the pseudo-inverse: ``J x`` is
@@ -115,11 +129,7 @@ class RidgeCholesky(lx.Cholesky):
 
     def init(self, operator, options):
         del options
-        matrix = operator.as_matrix()
-        n = matrix.shape[0]
-        relative = max(1e-12, 100 * float(jnp.finfo(matrix.dtype).eps))
-        ridge = relative * jnp.trace(matrix) / n + jnp.finfo(matrix.dtype).tiny
-        factor, _ = jax.scipy.linalg.cho_factor(matrix + ridge * jnp.eye(n, dtype=matrix.dtype))
+        factor, _ = jax.scipy.linalg.cho_factor(add_ridge(operator.as_matrix()))
         return factor
 
     def compute(self, state, vector, options):

@@ -122,7 +122,6 @@ def rotation_triple(
     smallest frame scale was 2% of the median).
     """
     Mn = M / jnp.sqrt(jnp.mean(M**2))
-    Mi = to_frames(Mn)
     eps = jnp.finfo(M.dtype).eps
     # The minimisers form a manifold (global rotation, mixing of the true triples) where
     # the Jacobian is rank deficient: a minimum-norm Gauss--Newton step converges
@@ -147,6 +146,7 @@ def rotation_triple(
     # many, all giving the same rotations and shapes.
     adjoint = optx.ImplicitAdjoint(linear_solver=rank_deficient)
     fixed = jax.lax.stop_gradient(Mn)  # the starts only choose where the finish begins
+    Mi = to_frames(fixed)
 
     def solve(g):
         sol = optx.least_squares(_rotation_residuals, ridged, g, fixed, max_steps=max_steps, throw=False)
