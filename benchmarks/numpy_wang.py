@@ -88,18 +88,38 @@ def _solve(G, rhs):
 
 
 def masked_als(W, weights, M, max_steps=500, rtol=1e-10):
+    # jaxnrsfm.factorize.masked_als: each sweep's new M extrapolated along its change and
+    # kept if its fit costs less than the last iterate's, else the plain sweep.
     mask = np.repeat(weights, 2, axis=0)
     floor = np.finfo(float).eps ** 2 * np.sum(mask * W**2)
-    previous = np.inf
-    for _ in range(max_steps):
-        S = _solve(np.einsum("ij,ia,ib->jab", mask, M, M, optimize=True), np.einsum("ij,ia,ij->ja", mask, M, W)).T
-        M = _solve(np.einsum("ij,aj,bj->iab", mask, S, S, optimize=True), np.einsum("ij,aj,ij->ia", mask, S, W))
+
+    def structure(M):
+        return _solve(np.einsum("ij,ia,ib->jab", mask, M, M, optimize=True), np.einsum("ij,ia,ij->ja", mask, M, W)).T
+
+    def motion(S):
+        return _solve(np.einsum("ij,aj,bj->iab", mask, S, S, optimize=True), np.einsum("ij,aj,ij->ia", mask, S, W))
+
+    def cost(M, S):
+        return np.sum(mask * (W - M @ S) ** 2)
+
+    S, previous, beta = structure(M), np.inf, 1.0
+    for step in range(max_steps):
+        new = motion(S)
+        far = new + (beta if step else 0.0) * (new - M)
+        S_far = structure(far)
+        c_far = cost(far, S_far)
+        if step == 0 or c_far < previous:
+            M, S, c = far, S_far, c_far
+            beta = min(1.5 * beta, 8.0) if step else beta
+        else:
+            M, S = new, structure(new)
+            c = cost(M, S)
+            beta = max(0.5 * beta, 0.25)
         M, R = np.linalg.qr(M)
         S = R @ S
-        cost = np.sum(mask * (W - M @ S) ** 2)
-        if cost <= floor or previous - cost <= rtol * cost:
+        if c <= floor or previous - c <= rtol * c:
             break
-        previous = cost
+        previous = c
     return M, S
 
 

@@ -11,8 +11,8 @@ Two forms, both from the paper (section 3.2 and 4.1):
 
 Complete data is factorized by a truncated SVD, the least-squares optimum (eq. 13);
 data with missing entries by masked alternating least squares (Hartley &
-Schaffalitzky's power factorization), initialised from the SVD of the mean-filled
-matrix. All kernels are pure and jit-compiled; they vmap over trials.
+Schaffalitzky's power factorization; its sweeps extrapolated), initialised from the SVD
+of the mean-filled matrix. All kernels are pure and jit-compiled; they vmap over trials.
 """
 
 from typing import Literal
@@ -64,31 +64,31 @@ def _solve_batched(
     return jnp.linalg.solve(add_ridge(G, damping), rhs[..., None])[..., 0]
 
 
-def als_step(
-    W: Float[Array, "2m n"],
-    mask: Float[Array, "2m n"],
-    M: Float[Array, "2m r"],
-    damping: Float[Array, ""] | float = 0.0,
-) -> tuple[Float[Array, "2m r"], Float[Array, "r n"]]:
-    """One sweep of masked alternating least squares: S given M, then M given S.
-
-    Each column of ``S`` and each row of ``M`` is an independent ``r x r`` normal
-    equation over its visible entries, so the sweep is two batched solves; ``damping``
-    adds that fraction of each equation's mean diagonal to its diagonal (a ridge).
-    """
+def _structure(
+    W: Float[Array, "2m n"], mask: Float[Array, "2m n"], M: Float[Array, "2m r"], damping: Float[Array, ""]
+) -> Float[Array, "r n"]:
+    # S given M: each column of S is an independent r x r normal equation over its visible
+    # entries, one batched solve; ``damping`` adds that fraction of each equation's mean
+    # diagonal to its diagonal (a ridge).
     G = jnp.einsum("ij,ia,ib->jab", mask, M, M)
-    S = _solve_batched(G, jnp.einsum("ij,ia,ij->ja", mask, M, W), damping).T
+    return _solve_batched(G, jnp.einsum("ij,ia,ij->ja", mask, M, W), damping).T
+
+
+def _motion(
+    W: Float[Array, "2m n"], mask: Float[Array, "2m n"], S: Float[Array, "r n"], damping: Float[Array, ""]
+) -> Float[Array, "2m r"]:
+    # M given S: one r x r normal equation per row of M.
     G = jnp.einsum("ij,aj,bj->iab", mask, S, S)
-    M = _solve_batched(G, jnp.einsum("ij,aj,ij->ia", mask, S, W), damping)
-    # Keep M orthonormal so the gauge cannot drift towards an ill-conditioned pair.
-    Q, R = jnp.linalg.qr(M)
-    return Q, R @ S
+    return _solve_batched(G, jnp.einsum("ij,aj,ij->ia", mask, S, W), damping)
 
 
 DAMPING = 1e-3
 """Ridge of `initial_fit`'s first ALS sweeps, relative to each normal equation's
 mean diagonal."""
 DAMPED_STEPS = 30
+EXTRAPOLATION = (1.0, 1.5, 0.5, 0.25, 8.0)
+"""`masked_als`'s extrapolation factor: its start, its growth after an accepted
+extrapolation and its shrinkage after a rejected one, and its bounds."""
 
 
 def masked_als(
@@ -107,34 +107,68 @@ def masked_als(
     ``DAMPING``, see `initial_fit`); then, undamped, it stops when a sweep lowers
     the cost by less than ``rtol`` of itself, or when the cost is negligible against the
     data.
+
+    Each undamped sweep is extrapolated: the new ``M`` (given the last ``S``) is moved on
+    along its change, ``M + beta (M_new - M)``, and kept if the fit with its own ``S``
+    costs less than the last iterate; otherwise the plain sweep is taken (one more solve
+    for ``S``). ``beta`` grows while extrapolations are kept and shrinks when one is not
+    (`EXTRAPOLATION`). Plain ALS crawls through the "swamps" of a missing-data problem:
+    on the paper's cube with its outliers missing (rank 13, sigma 2), from the SVD of the
+    zero-filled tracks, two of six 30-frame trials took 375 and 323 sweeps to
+    ``rtol = 1e-10``, extrapolated 53 and 87 (the same minima to 1e-9), and at the
+    rejection passes' 1e-6 plain ALS stopped in the swamp (cost 38177.3 against the
+    minimum 38055.7) where the extrapolated sweeps reached 38055.74 in 34; on 100 frames
+    68 against 29 sweeps. Where plain ALS converges in a few sweeps, the extrapolated one
+    takes about two more.
     """
     mask = row_mask(weights).astype(W.dtype)
     scale = jnp.sum(mask * W**2)
     floor = jnp.finfo(W.dtype).eps ** 2 * scale
+    start, grow, shrink, smallest, largest = EXTRAPOLATION
+    inf = jnp.array(jnp.inf, W.dtype)
 
     def cost(M, S):
         return jnp.sum(mask * (W - M @ S) ** 2)
 
-    def damping(step):
-        return jnp.where(step < damped_steps, DAMPING, 0.0)
-
     def cond(state):
-        _, _, c, c_prev, step = state
+        _, _, c, c_prev, step, _ = state
         progress = (step < damped_steps) | ((c > floor) & (c_prev - c > rtol * c))
         return (step == 0) | ((step < max_steps) & progress)
 
     def body(state):
-        M, _, c, _, step = state
-        M, S = als_step(W, mask, M, damping(step))
+        M, S, c, _, step, beta = state
+        damped = step < damped_steps
+        damping = jnp.where(damped, DAMPING, 0.0)
+        new = _motion(W, mask, S, damping)
+        # No extrapolation in a damped sweep (its fixed point is the ridge's, not the
+        # cost's) nor from the start, whose cost is not yet known.
+        plain = damped | (step == 0)
+        far = new + jnp.where(plain, 0.0, beta) * (new - M)
+        S_far = _structure(W, mask, far, damping)
+        c_far = cost(far, S_far)
+        keep = plain | (c_far < c)
+
+        # Under vmap the cond runs both branches, and two batched LAPACK calls that XLA's
+        # CPU runtime may run concurrently have deadlocked it (see `initial_fit`): the
+        # ``0 * c`` terms order this solve after S_far's, and the QR below after it.
+        def sweep(_):
+            S_new = _structure(W, mask, new + 0.0 * c_far, damping)
+            return new, S_new, cost(new, S_new)
+
+        M, S, c_new = jax.lax.cond(keep, lambda _: (far, S_far, c_far), sweep, None)
+        beta = jnp.where(
+            plain, beta, jnp.where(keep, jnp.minimum(grow * beta, largest), jnp.maximum(shrink * beta, smallest))
+        )
+        # Keep M orthonormal so the gauge cannot drift towards an ill-conditioned pair.
+        Q, R = jnp.linalg.qr(M + 0.0 * c_new)
         # A damped sweep's cost is no reference for the convergence test: damped ALS
         # stalls at its own (ridge-biased) fixed point, which the undamped sweeps must leave.
-        return M, S, cost(M, S), jnp.where(step < damped_steps, inf, c), step + 1
+        return Q, R @ S, c_new, jnp.where(damped, inf, c), step + 1, beta
 
-    # The first sweep runs inside the loop too (``step == 0``): one copy of the sweep in
-    # the compiled program, not two.
-    inf = jnp.array(jnp.inf, W.dtype)
-    S0 = jnp.zeros((M0.shape[1], W.shape[1]), W.dtype)
-    M, S, c, c_prev, steps = jax.lax.while_loop(cond, body, (M0, S0, inf, inf, jnp.array(0)))
+    S0 = _structure(W, mask, M0, jnp.where(damped_steps > 0, DAMPING, 0.0))
+    M, S, c, c_prev, steps, _ = jax.lax.while_loop(
+        cond, body, (M0, S0, inf, inf, jnp.array(0), jnp.array(start, W.dtype))
+    )
     converged = (c <= floor) | (c_prev - c <= rtol * c)
     return M, S, steps, converged
 
