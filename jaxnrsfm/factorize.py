@@ -243,9 +243,9 @@ def least_squares_fit(
     ``solver`` (static) chooses the missing-data fit: ``"als"``; ``"varpro"``, ALS then
     variable projection from its answer; ``"auto"``, VarPro only when ALS stopped at its
     step limit, the mark of the slow "swamps" where it stalls short of a minimum (on the
-    Oxford dinosaur, rank 4: ALS stopped at RMS 1.6417 after 1000 sweeps, VarPro from
-    there reached the best known 1.084673 in 169 steps; on the paper's cube with 30%
-    missing ALS converged in 48--63 sweeps and VarPro from there changed nothing). A
+    Oxford dinosaur, rank 4: ALS stopped at RMS 1.3538 after 1000 sweeps, VarPro from
+    there reached the best known 1.084673 in 285 steps; on the paper's cube with 30%
+    missing ALS converged in 54 sweeps and VarPro from there changed nothing). A
     ``lax.cond``: under ``jax.vmap`` it becomes a select and VarPro runs for every
     member. VarPro needs a visibility mask (``bool`` weights)."""
     if complete:
