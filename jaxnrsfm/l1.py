@@ -210,7 +210,7 @@ def ke_kanade_step(
     S = jax.vmap(l1_regression, in_axes=(None, 1, 1), out_axes=1)(M, W, mask)
     M = jax.vmap(l1_regression, in_axes=(None, 0, 0))(S.T, W, mask)
     # The cost is invariant under M S = (M G)(G^-1 S); re-orthonormalising M keeps the
-    # gauge from drifting towards an ill-conditioned pair (as in `als_step`).
+    # gauge from drifting towards an ill-conditioned pair (as in `jaxnrsfm.factorize.masked_als`).
     Q, R = jnp.linalg.qr(M)
     return Q, R @ S
 
