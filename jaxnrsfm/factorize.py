@@ -130,6 +130,9 @@ def masked_als(
     def cost(M, S):
         return jnp.sum(mask * (W - M @ S) ** 2)
 
+    def damping(step):
+        return jnp.where(step < damped_steps, DAMPING, 0.0)
+
     def cond(state):
         _, _, c, c_prev, step, _ = state
         progress = (step < damped_steps) | ((c > floor) & (c_prev - c > rtol * c))
@@ -137,14 +140,13 @@ def masked_als(
 
     def body(state):
         M, S, c, _, step, beta = state
-        damped = step < damped_steps
-        damping = jnp.where(damped, DAMPING, 0.0)
-        new = _motion(W, mask, S, damping)
+        damped, ridge = step < damped_steps, damping(step)
+        new = _motion(W, mask, S, ridge)
         # No extrapolation in a damped sweep (its fixed point is the ridge's, not the
         # cost's) nor from the start, whose cost is not yet known.
         plain = damped | (step == 0)
         far = new + jnp.where(plain, 0.0, beta) * (new - M)
-        S_far = _structure(W, mask, far, damping)
+        S_far = _structure(W, mask, far, ridge)
         c_far = cost(far, S_far)
         keep = plain | (c_far < c)
 
@@ -152,7 +154,7 @@ def masked_als(
         # CPU runtime may run concurrently have deadlocked it (see `initial_fit`): the
         # ``0 * c`` terms order this solve after S_far's, and the QR below after it.
         def sweep(_):
-            S_new = _structure(W, mask, new + 0.0 * c_far, damping)
+            S_new = _structure(W, mask, new + 0.0 * c_far, ridge)
             return new, S_new, cost(new, S_new)
 
         M, S, c_new = jax.lax.cond(keep, lambda _: (far, S_far, c_far), sweep, None)
@@ -165,7 +167,7 @@ def masked_als(
         # stalls at its own (ridge-biased) fixed point, which the undamped sweeps must leave.
         return Q, R @ S, c_new, jnp.where(damped, inf, c), step + 1, beta
 
-    S0 = _structure(W, mask, M0, jnp.where(damped_steps > 0, DAMPING, 0.0))
+    S0 = _structure(W, mask, M0, damping(0))
     M, S, c, c_prev, steps, _ = jax.lax.while_loop(
         cond, body, (M0, S0, inf, inf, jnp.array(0), jnp.array(start, W.dtype))
     )
