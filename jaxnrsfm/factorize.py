@@ -60,8 +60,13 @@ class Factorization(eqx.Module):
 def _solve_batched(
     G: Float[Array, "b r r"], rhs: Float[Array, "b r"], damping: Float[Array, ""] | float = 0.0
 ) -> Float[Array, "b r"]:
-    # ``damping`` adds a larger ridge than add_ridge's own.
-    return jnp.linalg.solve(add_ridge(G, damping), rhs[..., None])[..., 0]
+    # ``damping`` adds a larger ridge than add_ridge's own. The ridged normal matrices are
+    # positive definite: a Cholesky factor and two triangular solves. jnp.linalg.solve's
+    # pivoted LU (its permutation built by a loop of scatters) made up a third of the
+    # compiled robust pipeline (cube, 30 frames: 41379 -> 32279 lines of optimised HLO,
+    # compilation 11.5 -> 8.2 s under the tests' flags) and ran slower.
+    factor = jax.lax.linalg.cholesky(add_ridge(G, damping), symmetrize_input=False)
+    return jax.scipy.linalg.cho_solve((factor, True), rhs[..., None])[..., 0]
 
 
 def _structure(

@@ -91,10 +91,13 @@ def polar_rows(A: Float[Array, "... 2 3"]) -> Float[Array, "... 2 3"]:
     the case of interest, a scaled rotation.
     """
     P = A @ jnp.swapaxes(A, -1, -2)
-    root_det = jnp.sqrt(jnp.linalg.det(P))
-    norm = jnp.sqrt(jnp.trace(P, axis1=-2, axis2=-1) + 2 * root_det)
-    sqrt_P = (P + root_det[..., None, None] * jnp.eye(2, dtype=A.dtype)) / norm[..., None, None]
-    return jnp.linalg.solve(sqrt_P, A)
+    a, b, d = P[..., 0, 0], P[..., 0, 1], P[..., 1, 1]
+    root_det = jnp.sqrt(a * d - b * b)
+    norm = jnp.sqrt(a + d + 2 * root_det)
+    # sqrt(P) = (P + s I) / norm with s = sqrt(det P), inverted in closed form (no LAPACK
+    # call): det(P + s I) = s (a + d + 2 s) = s norm^2.
+    adjugate = jnp.stack([jnp.stack([d + root_det, -b], -1), jnp.stack([-b, a + root_det], -1)], -2)
+    return (adjugate @ A) / (root_det * norm)[..., None, None]
 
 
 def add_ridge(G: Float[Array, "... r r"], damping: Float[Array, ""] | float = 0.0) -> Float[Array, "... r r"]:

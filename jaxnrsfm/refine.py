@@ -46,7 +46,7 @@ from jaxtyping import Array, Bool, Float
 
 from .linalg import truncated_svd
 from .tracks import from_frames, to_frames
-from .upgrade import flip_frames, frame_signs, nearest_rotations, rotation_triple
+from .upgrade import flip_frames, frame_signs, nearest_rotations, random_starts, rotation_triple
 
 
 def _svt(X: Float[Array, "m p"], tau: Float[Array, ""]) -> Float[Array, "m p"]:
@@ -196,8 +196,7 @@ def _rotations_at_rank(
     if rank is None:
         s = jnp.where(above_noise(s, (2 * m, n - 1)) | (jnp.arange(width) < min_rank), s, 0.0)
     M = U * s
-    g0 = jax.random.normal(jax.random.key(0), (starts, width, 3), M.dtype)
-    R = nearest_rotations(to_frames(M) @ rotation_triple(M, g0, min_scale=MIN_SCALE))
+    R = nearest_rotations(to_frames(M) @ rotation_triple(M, random_starts(starts, width, M.dtype), min_scale=MIN_SCALE))
     return flip_frames(R, frame_signs(R, frames))
 
 

@@ -106,6 +106,15 @@ FINISH_STEPS = 4
 """Minimum-norm Gauss--Newton steps that finish `rotation_triple`'s winning start."""
 
 
+def random_starts(starts: int, rank: int, dtype) -> Float[Array, "starts rank 3"]:
+    """``starts`` random triples (standard normal, a fixed key) for `rotation_triple`.
+
+    Drawn when the caller is traced and embedded in its program as a constant: drawn inside
+    it, the random number generator took 6% of the compiled default pipeline."""
+    with jax.ensure_compile_time_eval():
+        return jax.random.normal(jax.random.key(0), (starts, rank, 3), dtype)
+
+
 def rotation_triple(
     M: Float[Array, "2m 3k"], g0: Float[Array, "starts 3k 3"], *, max_steps: int = 40, min_scale: float = 0.0
 ) -> Float[Array, "3k 3"]:
@@ -218,8 +227,7 @@ def metric_upgrade(
     """
     S, translations = center_structure(M, S, translations)
     Mi = to_frames(M)
-    g0 = jax.random.normal(jax.random.key(0), (starts, M.shape[1], 3), M.dtype)
-    R, trust = _rotations_and_trust(Mi, rotation_triple(M, g0))
+    R, trust = _rotations_and_trust(Mi, rotation_triple(M, random_starts(starts, M.shape[1], M.dtype)))
     H, w = triples_given_rotations(M, R, k, trust)
     # The first triple is whichever combination of the true ones a start fell into, and
     # may nearly vanish in some frames. Now that all k triples are known, take the

@@ -87,11 +87,14 @@ def test_direct_pipeline_matches_finite_differences(noise, missing):
     assert _check(f, W, [_direction(seq, W)], 1e-4 if noise else 1e-5) < 1e-5
 
 
-@pytest.mark.parametrize("noise", [1.0, 0.0])
-def test_huber_matches_finite_differences_in_tracks_and_delta(noise):
+@pytest.mark.parametrize(("noise", "h"), [(1.0, 1e-5), (0.0, 1e-4)])
+def test_huber_matches_finite_differences_in_tracks_and_delta(noise, h):
     # The Huber fit's scale comes from the least-squares fit and its solution is
     # re-attached by the implicit function theorem: both carry gradients, in W and delta.
     # Noise-free tracks with outliers too: the scale is floored at the tracks' precision.
+    # There the forward solve's round-off left differences of step 1e-5 at 7.9e-6 to
+    # 1.1e-5 relative from the derivatives (with the tests' XLA flags or without, LU or
+    # Cholesky normal equations in ALS); step 1e-4 agrees to 3.8e-7, 1e-3 to 2.2e-6.
     seq, W, truth = _cube(noise, outliers=0.1)
     probe = jax.random.normal(jax.random.key(3), W.shape)
 
@@ -104,7 +107,7 @@ def test_huber_matches_finite_differences_in_tracks_and_delta(noise):
 
     x = (W, jnp.array(0.8))
     directions = [(_direction(seq, W), jnp.array(0.0)), (jnp.zeros_like(W), jnp.array(1.0))]
-    assert _check(f, x, directions, 1e-5) < 1e-5
+    assert _check(f, x, directions, h) < 1e-5
 
 
 @pytest.mark.parametrize(("noise", "h"), [(1.0, 1e-4), (0.0, 1e-3)])
