@@ -27,18 +27,43 @@ def _max_step(z, dz):
     return jnp.minimum(1, jnp.min(jnp.where(neg, -z / jnp.where(neg, dz, -1), jnp.inf)))
 
 
-def _factor(A, theta):
+class _Rows(eqx.Module):
+    """The LP's design matrix ``diag(w) A diag(1 / d)`` (row weights ``w``, column scales
+    ``d``), applied without being formed. In a Ke & Kanade half-sweep every problem shares
+    ``A`` (``M``, or ``S^T``) and only ``w`` and ``d`` differ: under ``jax.vmap`` the
+    products with ``A`` stay single matrix products and the normal matrices one
+    contraction, where a formed per-problem matrix made them batched products of small
+    matrices. Measured on the paper's cube (252 problems of 200 x 13 a half-sweep, the tests'
+    XLA flags): the 252 normal matrices 6.7 -> 2.2 ms, the products with ``x`` 1.0 -> 0.16
+    ms; a sweep 1.12-1.13 -> 0.81-0.86 s (0.49 -> 0.41 s with XLA's default flags), the same
+    L1 cost to 1e-14."""
+
+    A: Float[Array, "N r"]
+    w: Float[Array, " N"]
+    d: Float[Array, " r"]
+
+    def __matmul__(self, x):
+        return self.w * (self.A @ (x / self.d))
+
+    def rmatmul(self, y):
+        return (self.A.T @ (self.w * y)) / self.d
+
+    def rows(self, index):
+        return self.w[index, None] * self.A[index] / self.d
+
+
+def _factor(A: _Rows, theta):
     # Normal matrix of the Newton system, A^T diag(theta) A. The relative ridge only
     # matters for a rank-deficient A: it picks a bounded step in A's null space (where the
     # objective is flat) instead of a singular solve. LU rather than Cholesky because
     # round-off can make the ridged matrix slightly indefinite.
-    r = A.shape[1]
-    G = (A * theta[:, None]).T @ A
-    ridge = 10 * jnp.finfo(A.dtype).eps * jnp.trace(G) / r + jnp.finfo(A.dtype).tiny
-    return jsl.lu_factor(G + ridge * jnp.eye(r, dtype=A.dtype))
+    r = A.A.shape[1]
+    G = jnp.einsum("nr,n,ns->rs", A.A, A.w**2 * theta, A.A) / (A.d[:, None] * A.d[None, :])
+    ridge = 10 * jnp.finfo(G.dtype).eps * jnp.trace(G) / r + jnp.finfo(G.dtype).tiny
+    return jsl.lu_factor(G + ridge * jnp.eye(r, dtype=G.dtype))
 
 
-def _interior_point(A, b, max_steps, tol):
+def _interior_point(A: _Rows, b, max_steps, tol):
     """Mehrotra predictor-corrector on ``min 1^T (u + v)  s.t.  A x + u - v = b, u, v >= 0``.
 
     The dual is ``max b^T y  s.t.  A^T y = 0, -1 <= y <= 1``; its slacks are kept as
@@ -47,8 +72,8 @@ def _interior_point(A, b, max_steps, tol):
     Statistical Science 1997). Returns the best ``x`` seen, its objective, the final
     weights ``theta`` (largest on the interpolated rows) and the number of steps.
     """
-    N, r = A.shape
-    dtype = A.dtype
+    N = b.shape[0]
+    dtype = b.dtype
     eps = jnp.finfo(dtype).eps
 
     def objective(x):
@@ -56,7 +81,7 @@ def _interior_point(A, b, max_steps, tol):
 
     # Start from least squares: primal feasible (u - v = residual) and pushed into the
     # interior by delta; y = 0 is dual feasible and central in the box.
-    x = jsl.lu_solve(_factor(A, jnp.ones(N, dtype)), A.T @ b)
+    x = jsl.lu_solve(_factor(A, jnp.ones(N, dtype)), A.rmatmul(b))
     res = b - A @ x
     delta = 0.5 * jnp.mean(jnp.abs(res)) + 0.1  # b is normalised to mean |b| = 1
     u = jnp.maximum(res, 0) + delta
@@ -73,13 +98,13 @@ def _interior_point(A, b, max_steps, tol):
         x, u, v, y, x_best, P_best, _, k = state
         su, sv = 1 - y, 1 + y
         rp = b - A @ x - u + v
-        rd = -(A.T @ y)
+        rd = -A.rmatmul(y)
         theta = 1 / (u / su + v / sv)
         lu = _factor(A, theta)
 
         def direction(rhs_u, rhs_v):
             c = rhs_u / su - rhs_v / sv
-            dx = jsl.lu_solve(lu, A.T @ (theta * (rp - c)) - rd)
+            dx = jsl.lu_solve(lu, A.rmatmul(theta * (rp - c)) - rd)
             dy = theta * (rp - c - A @ dx)
             return dx, (rhs_u + u * dy) / su, (rhs_v - v * dy) / sv, dy
 
@@ -165,8 +190,11 @@ def l1_regression(
         tol = float(jnp.finfo(dtype).eps) ** 0.75
     active = w > 0
     # sum w_i |A_i x - b_i| = sum |w_i A_i x - w_i b_i|: weights fold into the rows, and a
-    # masked row becomes 0 = 0, which the LP satisfies at no cost.
-    A = jnp.where(active[:, None], A * w[:, None], 0)
+    # masked row becomes 0 = 0, which the LP satisfies at no cost. A stays unweighted and
+    # unscaled (`_Rows`: shared by every problem of a batch that shares it); its masked
+    # rows are made finite so that their zero weight zeroes them.
+    A = jnp.where(jnp.isfinite(A), A, 0)
+    w = jnp.where(active, w, 0)
     b = jnp.where(active, b * w, 0)
 
     # Scale invariance: b to unit mean magnitude, columns of A to unit norm, so that the
@@ -174,18 +202,18 @@ def l1_regression(
     n_active = jnp.maximum(jnp.sum(active), 1)
     b_scale = jnp.sum(jnp.abs(b)) / n_active
     b_scale = jnp.where(b_scale > 0, b_scale, 1)
-    col_scale = jnp.linalg.norm(A, axis=0)
+    col_scale = jnp.sqrt(w**2 @ A**2)
     col_scale = jnp.where(col_scale > 0, col_scale, 1)
-    A, b = A / col_scale, b / b_scale
+    rows, b = _Rows(A, w, col_scale), b / b_scale
 
-    x, P, theta, _ = _interior_point(A, b, max_steps, tol)
+    x, P, theta, _ = _interior_point(rows, b, max_steps, tol)
 
     # Purification: an optimal vertex interpolates r rows; the interior point's weights
     # theta are largest (~1/mu) on exactly those rows. Solving them exactly removes the
     # residual duality gap; least squares keeps a rank-deficient block finite.
-    _, rows = jax.lax.top_k(jnp.where(active, theta, -jnp.inf), min(A.shape))
-    x_vertex = jnp.linalg.lstsq(A[rows], b[rows])[0]
-    P_vertex = jnp.sum(jnp.abs(b - A @ x_vertex))
+    _, top = jax.lax.top_k(jnp.where(active, theta, -jnp.inf), min(A.shape))
+    x_vertex = jnp.linalg.lstsq(rows.rows(top), b[top])[0]
+    P_vertex = jnp.sum(jnp.abs(b - rows @ x_vertex))
     x = jnp.where(P_vertex < P, x_vertex, x)
     return x * b_scale / col_scale
 
