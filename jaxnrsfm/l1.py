@@ -42,13 +42,16 @@ class _Rows(eqx.Module):
     w: Float[Array, " N"]
     d: Float[Array, " r"]
 
-    def __matmul__(self, x):
+    def __matmul__(self, x: Float[Array, " r"]) -> Float[Array, " N"]:
+        """The product with ``x``."""
         return self.w * (self.A @ (x / self.d))
 
-    def rmatmul(self, y):
+    def rmatmul(self, y: Float[Array, " N"]) -> Float[Array, " r"]:
+        """The transpose's product with ``y``."""
         return (self.A.T @ (self.w * y)) / self.d
 
-    def rows(self, index):
+    def rows(self, index: Int[Array, " p"]) -> Float[Array, "p r"]:
+        """The rows ``index``, formed."""
         return self.w[index, None] * self.A[index] / self.d
 
 
