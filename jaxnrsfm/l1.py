@@ -195,10 +195,12 @@ def l1_regression(
     # sum w_i |A_i x - b_i| = sum |w_i A_i x - w_i b_i|: weights fold into the rows, and a
     # masked row becomes 0 = 0, which the LP satisfies at no cost. A stays unweighted and
     # unscaled (`_Rows`: shared by every problem of a batch that shares it); its masked
-    # rows are made finite so that their zero weight zeroes them.
-    A = jnp.where(jnp.isfinite(A), A, 0)
+    # rows are made finite so that their zero weight zeroes them, and a non-finite value in
+    # an active row still makes the answer NaN (through b), as a formed matrix did.
+    finite = jnp.isfinite(A)
+    A = jnp.where(finite, A, 0)
     w = jnp.where(active, w, 0)
-    b = jnp.where(active, b * w, 0)
+    b = jnp.where(active, jnp.where(finite.all(axis=1), b, jnp.nan) * w, 0)
 
     # Scale invariance: b to unit mean magnitude, columns of A to unit norm, so that the
     # starting point, the ridge and the tolerances mean the same for every problem.

@@ -147,9 +147,10 @@ def robust_factorize(
     # magnitude, and the gauge is only damped away): CG needs tens to hundreds of
     # iterations, and a CG that stops at its step limit makes the whole solve report
     # failure (a CG that meets its loose CG_RTOL is an inexact step, which LM accepts).
-    # In float32 CG cannot reach these tolerances, and a CG that fails ends the solve at
-    # its first step (Huber and L1 returned the least-squares start): they are floored at
-    # sqrt(eps) and 1e3 eps of the dtype (float64's are above both). So is LM's own
+    # In float32 CG could not reach tighter tolerances, and a CG that fails ends the solve
+    # at its first step (Huber and L1 returned the least-squares start): they are floored
+    # at sqrt(eps) and 1e3 eps of the dtype (float64's are above both; CG_RTOL is above
+    # float32's sqrt(eps) too). So is LM's own
     # tolerance, at sqrt(eps) / 2: a relative change d of the parameters near the minimum
     # changes the loss by d^2, so float32 resolves the minimiser to about sqrt(eps) and met
     # 1e-8 only by chance (a Huber solve whose scale moved by round-off wobbled for 500
