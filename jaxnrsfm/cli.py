@@ -303,6 +303,14 @@ def reconstruct(
     shape_rho: Annotated[
         float | None, typer.Option(help="nuclear: ADMM penalty [1.0].", show_default=False, rich_help_panel=_SHAPE)
     ] = None,
+    raw_tracks: Annotated[
+        bool,
+        typer.Option(
+            "--raw-tracks",
+            help="nuclear: reproject onto the inliers themselves, not their part above the noise.",
+            rich_help_panel=_SHAPE,
+        ),
+    ] = False,
     max_steps: Annotated[
         int, typer.Option(help="Missing-data solver: most ALS sweeps.", rich_help_panel=_SOLVER)
     ] = 500,
@@ -377,6 +385,7 @@ def reconstruct(
             "--trace-norm-weight": trace_norm_weight,
             "--shape-steps": shape_steps,
             "--shape-rho": shape_rho,
+            "--raw-tracks": False if raw_tracks else None,
             "--max-steps": max_steps,
             "--rtol": rtol,
             "--varpro": varpro,
@@ -448,7 +457,7 @@ STAGE_FLAGS = {
         # The high-rank rotations' refills solve the shape step's ADMM: --shape-steps sets both.
         "steps": "--shape-steps",
     },
-    "shapes": {"steps": "--shape-steps", "rho": "--shape-rho"},
+    "shapes": {"steps": "--shape-steps", "rho": "--shape-rho", "denoise": "--raw-tracks"},
     "solver": {"max_steps": "--max-steps", "rtol": "--rtol", "varpro": "--varpro"},
 }
 """The command-line flag of every option (field) of every built-in stage, by stage."""
