@@ -74,9 +74,9 @@ class NuclearShapes(ShapeStep):
 
     Denoised, the shapes fit the signal instead of reprojecting the noise: with the true
     rotations, random Bregler sequences at sigma 1 (k = 2, 40 x 30) 0.027 -> 0.015; with
-    the default's rotations, the paper's cube at sigma 2 with 10% outliers 0.0372 ->
-    0.0254 (100 frames), and on 8 synthetic sequences (cube, Bregler k = 2, 3) better in
-    every one, 0.050 -> 0.044 on average (`shapes="upgrade"`: 0.060); the Akhter
+    the default's rotations, on 8 synthetic sequences with 10% outliers (the 40-frame cube
+    at sigma 2, Bregler k = 2, 3 at sigma 1, 0.5) better in every one, 0.050 -> 0.044 on
+    average (`shapes="upgrade"`: 0.060); the Akhter
     sequences' first 150 frames with noise 1% of their RMS: yoga 0.0439 -> 0.0401, pickup
     0.1472 -> 0.1463, stretch 0.1241 -> 0.1235. On motion capture's exact projections
     the part above the noise is nearly all (drink 0.0262 -> 0.0263; the others unchanged)."""
