@@ -45,6 +45,7 @@ def test_option_errors(kwargs, message):
         (lambda: nr.HighRankRotations(rank=0), "rank must be"),
         (lambda: nr.TraceNormRotations(weight=0.0), "weight must be > 0"),
         (lambda: nr.NuclearShapes(steps=0), "steps must be"),
+        (lambda: nr.NuclearShapes(denoise=1), "denoise must be True or False"),
         (lambda: nr.MaskedALS(varpro="sometimes"), "varpro must be one of"),
     ],
 )

@@ -86,13 +86,15 @@ class NuclearShapes(ShapeStep):
     rho: float = 1.0
     """ADMM penalty, relative to the tracks normalised to unit RMS."""
 
-    def __check_init__(self):
-        if not (isinstance(self.steps, int) and self.steps >= 1) or not self.rho > 0:
-            raise ValueError(f"steps must be a positive integer and rho > 0; got {self.steps!r}, {self.rho!r}")
-
     denoise: bool = True
     """Fit the tracks' part above the noise (`jaxnrsfm.refine.above_noise_part`, at least
     ``3k`` directions) instead of the tracks themselves."""
+
+    def __check_init__(self):
+        if not (isinstance(self.steps, int) and self.steps >= 1) or not self.rho > 0:
+            raise ValueError(f"steps must be a positive integer and rho > 0; got {self.steps!r}, {self.rho!r}")
+        if not isinstance(self.denoise, bool):
+            raise ValueError(f"denoise must be True or False; got {self.denoise!r}")
 
     def __call__(self, frames, rotations, observed, *, upgrade):
         if self.denoise:
