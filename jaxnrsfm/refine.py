@@ -249,7 +249,9 @@ def _rotations_at_rank(
     def wide(_):
         return rotation_triple(M, g0, min_scale=MIN_SCALE)
 
-    g = wide(None) if width <= min_rank else jax.lax.cond(used <= min_rank, narrow, wide, None)
+    # Only the noise rule (rank None) zeroes directions: a given rank is solved as it is.
+    narrowable = rank is None and width > min_rank
+    g = jax.lax.cond(used <= min_rank, narrow, wide, None) if narrowable else wide(None)
     R = nearest_rotations(to_frames(M) @ g)
     return flip_frames(R, frame_signs(R, frames)), used
 
