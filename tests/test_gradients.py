@@ -8,6 +8,8 @@ so that e3D is not at its kink (zero) on noise-free data. The forward solvers ru
 tight tolerance: a difference quotient is only as good as the solution it differences.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -36,26 +38,40 @@ def _cube(noise, missing=0.0, outliers=0.0, seed=0):
     return seq, W, truth
 
 
+def _visible(seq):
+    # The mask as an argument of the compiled derivatives; None where every entry is
+    # visible, so that the pipeline takes its complete-data path (decided on a concrete mask).
+    return None if bool(seq.visible.all()) else seq.visible
+
+
 def _outputs(rec, truth, probe):
     aligned = nr.align_shapes(rec.shapes, truth)
     return jnp.stack([jnp.sum(rec.W_hat * probe), jnp.sum(aligned * truth) / truth.size, nr.e3d(rec.shapes, truth)])
 
 
-def _check(f, x, directions, h):
-    """jvp and vjp of the vector function ``f`` at ``x`` (a pytree) along each direction
-    against central differences of step ``h``; returns the largest relative discrepancy.
-    One compilation each for the jvp (whose primal output gives the differences) and the
-    vjp, whatever the number of directions; the vjp runs once, for every output at once
-    (its rows of the Jacobian), and is dotted with each direction."""
-    jvp = jax.jit(lambda x, dx: jax.jvp(f, (x,), (dx,)))
-    rows = jax.jit(lambda x, cts: jax.vmap(jax.vjp(f, x)[1])(cts)[0])
+@functools.cache
+def _derivatives(f):
+    """The jitted jvp of ``f(x, *args)`` in ``x`` (whose primal output gives the differences)
+    and its vjp rows, one pair per ``f``: the cases of a test share their compiled programs
+    (their data are arguments, not constants)."""
+    jvp = jax.jit(lambda x, dx, args: jax.jvp(lambda x: f(x, *args), (x,), (dx,)))
+    rows = jax.jit(lambda x, cts, args: jax.vmap(jax.vjp(lambda x: f(x, *args), x)[1])(cts)[0])
+    return jvp, rows
+
+
+def _check(f, x, args, directions, h):
+    """jvp and vjp of the vector function ``f(x, *args)`` in ``x`` (a pytree) along each
+    direction against central differences of step ``h``; returns the largest relative
+    discrepancy. The vjp runs once, for every output at once (its rows of the Jacobian),
+    and is dotted with each direction."""
+    jvp, rows = _derivatives(f)
     jacobian = None
     worst = 0.0
     for dx in directions:
-        fd = (jvp(_step(x, dx, h), dx)[0] - jvp(_step(x, dx, -h), dx)[0]) / (2 * h)
-        forward = jvp(x, dx)[1]
+        fd = (jvp(_step(x, dx, h), dx, args)[0] - jvp(_step(x, dx, -h), dx, args)[0]) / (2 * h)
+        forward = jvp(x, dx, args)[1]
         if jacobian is None:
-            jacobian = rows(x, jnp.eye(fd.shape[0], dtype=fd.dtype))
+            jacobian = rows(x, jnp.eye(fd.shape[0], dtype=fd.dtype), args)
         reverse = sum(
             jnp.tensordot(r, d, axes=d.ndim)
             for r, d in zip(jax.tree.leaves(jacobian), jax.tree.leaves(dx), strict=True)
@@ -80,11 +96,12 @@ def test_direct_pipeline_matches_finite_differences(noise, missing):
     # gradients must still be finite and right (truncated SVD, implicit ALS).
     seq, W, truth = _cube(noise, missing)
     probe = jax.random.normal(jax.random.key(3), W.shape)
+    args = (_visible(seq), truth, probe)
+    assert _check(_direct_outputs, W, args, [_direction(seq, W)], 1e-4 if noise else 1e-5) < 1e-5
 
-    def f(W):
-        return _outputs(nr.reconstruct(W, seq.visible, k=K, method="direct", **TIGHT), truth, probe)
 
-    assert _check(f, W, [_direction(seq, W)], 1e-4 if noise else 1e-5) < 1e-5
+def _direct_outputs(W, visible, truth, probe):
+    return _outputs(nr.reconstruct(W, visible, k=K, method="direct", **TIGHT), truth, probe)
 
 
 @pytest.mark.parametrize(("noise", "h"), [(1.0, 1e-5), (0.0, 1e-4)])
@@ -97,17 +114,18 @@ def test_huber_matches_finite_differences_in_tracks_and_delta(noise, h):
     # Cholesky normal equations in ALS); step 1e-4 agrees to 3.8e-7, 1e-3 to 2.2e-6.
     seq, W, truth = _cube(noise, outliers=0.1)
     probe = jax.random.normal(jax.random.key(3), W.shape)
-
-    def f(x):
-        W, delta = x
-        # k = 1: on 12 frames a k = 2 Huber fit takes Levenberg--Marquardt ~450 steps.
-        rec = nr.reconstruct(W, seq.visible, k=1, method=nr.Huber(delta=delta), **TIGHT)
-        loss = huber_loss(W - rec.W_hat, seq.visible, 1.0)
-        return jnp.concatenate([_outputs(rec, truth, probe), loss[None]])
-
     x = (W, jnp.array(0.8))
     directions = [(_direction(seq, W), jnp.array(0.0)), (jnp.zeros_like(W), jnp.array(1.0))]
-    assert _check(f, x, directions, h) < 1e-5
+    assert _check(_huber_outputs, x, (_visible(seq), truth, probe), directions, h) < 1e-5
+
+
+def _huber_outputs(x, visible, truth, probe):
+    W, delta = x
+    # k = 1: on 12 frames a k = 2 Huber fit takes Levenberg--Marquardt ~450 steps.
+    rec = nr.reconstruct(W, visible, k=1, method=nr.Huber(delta=delta), **TIGHT)
+    mask = jnp.ones(rec.inliers.shape, bool) if visible is None else visible
+    loss = huber_loss(W - rec.W_hat, mask, 1.0)
+    return jnp.concatenate([_outputs(rec, truth, probe), loss[None]])
 
 
 @pytest.mark.parametrize(("noise", "h"), [(1.0, 1e-4), (0.0, 1e-3)])
@@ -120,11 +138,11 @@ def test_wang_matches_finite_differences(noise, h):
     # 3e-4 down to 1e-5 there, below 1e-5 at 1e-3).
     seq, W, truth = _cube(noise, outliers=0.1)
     probe = jax.random.normal(jax.random.key(3), W.shape)
+    assert _check(_wang_outputs, W, (_visible(seq), truth, probe), [_direction(seq, W)], h) < 1e-5
 
-    def f(W):
-        return _outputs(nr.reconstruct(W, seq.visible, k=K, method="wang", **TIGHT), truth, probe)
 
-    assert _check(f, W, [_direction(seq, W)], h) < 1e-5
+def _wang_outputs(W, visible, truth, probe):
+    return _outputs(nr.reconstruct(W, visible, k=K, method="wang", **TIGHT), truth, probe)
 
 
 def test_weights_match_finite_differences():
@@ -134,12 +152,12 @@ def test_weights_match_finite_differences():
     probe = jax.random.normal(jax.random.key(3), W.shape)
     base = jax.random.uniform(jax.random.key(4), seq.visible.shape, minval=0.5, maxval=2.0) * seq.visible
 
-    def f(weights):
+    def f(weights, W, probe):
         M, S, _, _ = least_squares_fit(W, weights, 3 * K + 1, complete=False, **SOLVE)
         return jnp.sum((M @ S) * probe)[None]
 
     dw = jax.random.normal(jax.random.key(5), base.shape) * seq.visible
-    assert _check(f, base, [dw], 1e-5) < 1e-5
+    assert _check(f, base, (W, probe), [dw], 1e-5) < 1e-5
 
 
 def test_vmap_of_grad_equals_loop_of_grad():
