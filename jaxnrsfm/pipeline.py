@@ -238,6 +238,31 @@ def reconstruct_prepared(
     )
 
 
+ONE_CALL_OPTIONS = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
+"""XLA options of the program that a single `reconstruct` call compiles on a CPU: LLVM's
+lowest optimisation level and XLA:CPU's older fusion emitters. A single call's time is
+mostly compilation, and these compile the pipeline 4-5 times faster for a run about twice
+as slow. Measured on a 2-core CPU (on a slow day: one NumPy SVD of a 200 x 252 matrix
+14.7 ms), XLA's defaults against these, compile and run: the default call on yoga's first
+150 frames (k = 2) 34.6 + 2.7 s against 7.0 + 3.8 s; on the paper's 100-frame cube
+(k = 4, 10% outliers) 37.4 + 2.5 s against 7.7 + 4.9 s, and with ``shapes="upgrade"``
+30.5 + 0.70 s against 5.8 + 1.27 s; the same e3D to the digit. Many trials of one size
+run faster through `jaxnrsfm.reconstruct_batch` and the sweeps, which keep XLA's
+defaults, as does `reconstruct` under an outer ``jax.jit`` (whose options rule) and on an
+accelerator."""
+
+_reconstruct_once = eqx.filter_jit(reconstruct_prepared.__wrapped__, compiler_options=ONE_CALL_OPTIONS)
+
+
+def _compiled_for_one_call(*inputs):
+    # Only a call on concrete arrays outside any transformation: a jit staged into another
+    # program (under jax.jit, lax.scan, or reverse-mode differentiation, which stages the
+    # forward pass) may not carry compiler options of its own, and a transformed call is
+    # part of a larger computation. Under a staging trace even a constant is a tracer.
+    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((inputs, jnp.zeros(()))))
+    return reconstruct_prepared if traced or jax.default_backend() != "cpu" else _reconstruct_once
+
+
 def _stage(value, table: dict, base: type, what: str):
     # A stage given by its command-line name (default options) or as an instance.
     if isinstance(value, base):
@@ -354,4 +379,4 @@ def reconstruct(
     stages = resolve_stages(method, rotations, shapes, solver, form)
     check_stages(stages, vis.shape, k)
     complete = not isinstance(vis, jax.core.Tracer) and bool(vis.all())
-    return reconstruct_prepared(W0, vis, k=k, complete=complete, **stages)
+    return _compiled_for_one_call(W0, vis, stages)(W0, vis, k=k, complete=complete, **stages)

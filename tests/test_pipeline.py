@@ -151,6 +151,10 @@ def test_pipeline_traces_under_jit():
     scale = float(jnp.abs(eager.shapes).max())
     np.testing.assert_allclose(jitted.W_hat, eager.W_hat, rtol=1e-9, atol=1e-9 * scale)
     np.testing.assert_allclose(jitted.shapes, eager.shapes, rtol=1e-6, atol=1e-6 * scale)
+    # Tracks that are constants of the caller's program: the call is still staged into it
+    # (a single call's own compiler options, pipeline.ONE_CALL_OPTIONS, may not be nested).
+    closed = jax.jit(lambda: nr.reconstruct(seq.W, seq.visible, k=2, **PAPER))()
+    np.testing.assert_allclose(closed.W_hat, eager.W_hat, rtol=1e-9, atol=1e-9 * scale)
 
 
 def test_float32(key):
