@@ -65,8 +65,16 @@ os.environ["EQX_ON_ERROR"] = "nan"
 # its run ~40% slower (0.48 s -> 0.67 s). The computation is the same; results agree to round-off.
 # XLA:CPU's older (non-MLIR) fusion emitters compile the default pipeline (cube, 30 frames,
 # k = 2) in 3.5-5.0 s instead of 6.4-9.0 s, its run 3-10% slower, the same e3D to the digit.
+# Each worker has one core (above), where splitting a program's code generation into parallel
+# parts only adds work: with one part the default pipeline (cube, 30 frames, k = 3) compiled in
+# 6.6-7.3 s instead of 7.2-8.6 s, and tests/test_gradients.py (one process) took 226 s, not 237 s.
 os.environ["XLA_FLAGS"] = " ".join(
-    [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0", "--xla_cpu_use_fusion_emitters=false"]
+    [
+        os.environ.get("XLA_FLAGS", ""),
+        "--xla_backend_optimization_level=0",
+        "--xla_cpu_use_fusion_emitters=false",
+        "--xla_cpu_parallel_codegen_split_count=1",
+    ]
 ).strip()
 
 import jax  # noqa: E402
