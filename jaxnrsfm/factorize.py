@@ -20,6 +20,7 @@ from typing import Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .implicit import attach
@@ -58,33 +59,49 @@ class Factorization(eqx.Module):
 
 
 def _solve_batched(
-    G: Float[Array, "b r r"], rhs: Float[Array, "b r"], damping: Float[Array, ""] | float = 0.0
-) -> Float[Array, "b r"]:
+    G: Float[Array, "b r r"], rhs: Float[Array, "b r c"], damping: Float[Array, ""] | float = 0.0
+) -> Float[Array, "b r c"]:
     # ``damping`` adds a larger ridge than add_ridge's own. The ridged normal matrices are
     # positive definite: a Cholesky factor and two triangular solves. jnp.linalg.solve's
     # pivoted LU (its permutation built by a loop of scatters) made up a third of the
     # compiled robust pipeline (cube, 30 frames: 41379 -> 32279 lines of optimised HLO,
     # compilation 11.5 -> 8.2 s under the tests' flags) and ran slower.
     factor = jax.lax.linalg.cholesky(add_ridge(G, damping), symmetrize_input=False)
-    return jax.scipy.linalg.cho_solve((factor, True), rhs[..., None])[..., 0]
+    return jax.scipy.linalg.cho_solve((factor, True), rhs)
+
+
+def _grams(weights: Float[Array, "b n"], A: Float[Array, "p r n"]) -> Float[Array, "b r r"]:
+    # ``G_b = sum_j weights_bj sum_p a_pj a_pj^T``: the normal matrices of a weighted
+    # least-squares problem per row of ``weights``, ALS's cost. Each is symmetric, so one
+    # matrix product forms the r(r+1)/2 distinct entries of all of them, which a gather
+    # spreads into place; the p = 2 coordinates of an entry share its weight and are summed
+    # first. Against one product per row of M over all r^2 entries, a fourth of the work.
+    r = A.shape[1]
+    rows, cols = np.triu_indices(r)
+    index = np.zeros((r, r), int)
+    index[rows, cols] = index[cols, rows] = np.arange(rows.size)
+    products = jnp.sum(A[:, rows] * A[:, cols], axis=0)  # (r(r+1)/2, n)
+    return (weights @ products.T)[:, index]
 
 
 def _structure(
-    W: Float[Array, "2m n"], mask: Float[Array, "2m n"], M: Float[Array, "2m r"], damping: Float[Array, ""]
+    W: Float[Array, "2m n"], weights: Float[Array, "m n"], M: Float[Array, "2m r"], damping: Float[Array, ""]
 ) -> Float[Array, "r n"]:
     # S given M: each column of S is an independent r x r normal equation over its visible
     # entries, one batched solve; ``damping`` adds that fraction of each equation's mean
     # diagonal to its diagonal (a ridge).
-    G = jnp.einsum("ij,ia,ib->jab", mask, M, M)
-    return _solve_batched(G, jnp.einsum("ij,ia,ij->ja", mask, M, W), damping).T
+    G = _grams(weights.T, M.reshape(-1, 2, M.shape[1]).transpose(1, 2, 0))
+    rhs = (row_mask(weights) * W).T @ M
+    return _solve_batched(G, rhs[..., None], damping)[..., 0].T
 
 
 def _motion(
-    W: Float[Array, "2m n"], mask: Float[Array, "2m n"], S: Float[Array, "r n"], damping: Float[Array, ""]
+    W: Float[Array, "2m n"], weights: Float[Array, "m n"], S: Float[Array, "r n"], damping: Float[Array, ""]
 ) -> Float[Array, "2m r"]:
-    # M given S: one r x r normal equation per row of M.
-    G = jnp.einsum("ij,aj,bj->iab", mask, S, S)
-    return _solve_batched(G, jnp.einsum("ij,aj,ij->ia", mask, S, W), damping)
+    # M given S: the two rows of a frame share one r x r normal equation.
+    G = _grams(weights, S[None])
+    rhs = to_frames(row_mask(weights) * W) @ S.T  # (m, 2, r)
+    return _solve_batched(G, rhs.transpose(0, 2, 1), damping).transpose(0, 2, 1).reshape(-1, S.shape[0])
 
 
 DAMPING = 1e-3
@@ -126,7 +143,8 @@ def masked_als(
     68 against 29 sweeps. Where plain ALS converges in a few sweeps, the extrapolated one
     takes about two more.
     """
-    mask = row_mask(weights).astype(W.dtype)
+    weights = jnp.asarray(weights, W.dtype)
+    mask = row_mask(weights)
     scale = jnp.sum(mask * W**2)
     floor = jnp.finfo(W.dtype).eps ** 2 * scale
     start, grow, shrink, smallest, largest = EXTRAPOLATION
@@ -146,12 +164,12 @@ def masked_als(
     def body(state):
         M, S, c, _, step, beta = state
         damped, ridge = step < damped_steps, damping(step)
-        new = _motion(W, mask, S, ridge)
+        new = _motion(W, weights, S, ridge)
         # No extrapolation in a damped sweep (its fixed point is the ridge's, not the
         # cost's) nor from the start, whose cost is not yet known.
         plain = damped | (step == 0)
         far = new + jnp.where(plain, 0.0, beta) * (new - M)
-        S_far = _structure(W, mask, far, ridge)
+        S_far = _structure(W, weights, far, ridge)
         c_far = cost(far, S_far)
         keep = plain | (c_far < c)
 
@@ -159,7 +177,7 @@ def masked_als(
         # CPU runtime may run concurrently have deadlocked it (see `initial_fit`): the
         # ``0 * c`` terms order this solve after S_far's, and the QR below after it.
         def sweep(_):
-            S_new = _structure(W, mask, new + 0.0 * c_far, ridge)
+            S_new = _structure(W, weights, new + 0.0 * c_far, ridge)
             return new, S_new, cost(new, S_new)
 
         M, S, c_new = jax.lax.cond(keep, lambda _: (far, S_far, c_far), sweep, None)
@@ -172,7 +190,7 @@ def masked_als(
         # stalls at its own (ridge-biased) fixed point, which the undamped sweeps must leave.
         return Q, R @ S, c_new, jnp.where(damped, inf, c), step + 1, beta
 
-    S0 = _structure(W, mask, M0, damping(0))
+    S0 = _structure(W, weights, M0, damping(0))
     M, S, c, c_prev, steps, _ = jax.lax.while_loop(
         cond, body, (M0, S0, inf, inf, jnp.array(0), jnp.array(start, W.dtype))
     )

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import jaxnrsfm as nr
+from jaxnrsfm.factorize import _motion, _structure
 
 FORMS = ("augmented", "registered")
 PAPER = dict(method="direct", shapes="upgrade")
@@ -165,3 +166,19 @@ def test_float32(key):
     err = nr.rms_error(seq.W_clean, rec.W_hat, jnp.ones((100, 252), bool))
     assert float(err) < 1.1 * float(nr.statistical_floor(2.0, 100, 252, 13))
     assert float(nr.e3d(rec.shapes, seq.shapes)) < 0.05
+
+
+def test_als_half_sweeps_solve_their_weighted_normal_equations():
+    # masked_als's two half-sweeps (one normal matrix per frame, shared by its two rows,
+    # and one per point, formed from their distinct entries) against each row's and each
+    # column's weighted least-squares solution, with real weights and missing entries.
+    rng = np.random.default_rng(0)
+    m, n, r = 7, 11, 5
+    W, M, S = (jnp.asarray(rng.standard_normal(shape)) for shape in [(2 * m, n), (2 * m, r), (r, n)])
+    weights = jnp.asarray(rng.random((m, n)) * (rng.random((m, n)) > 0.2))
+    c = np.repeat(np.asarray(weights), 2, axis=0)
+    rows = [np.linalg.solve((S * c[i]) @ S.T, S @ (c[i] * W[i])) for i in range(2 * m)]
+    columns = [np.linalg.solve((M.T * c[:, j]) @ M, M.T @ (c[:, j] * W[:, j])) for j in range(n)]
+    # The solves add a relative ridge of 1e-12 (linalg.add_ridge).
+    np.testing.assert_allclose(_motion(W, weights, S, 0.0), np.stack(rows), atol=1e-9)
+    np.testing.assert_allclose(_structure(W, weights, M, 0.0), np.stack(columns, axis=1), atol=1e-9)
