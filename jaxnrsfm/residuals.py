@@ -95,10 +95,36 @@ def scale_floor(W: Float[Array, "2m n"], visible: Bool[Array, "m n"]) -> Float[A
     return jnp.sqrt(jnp.finfo(W.dtype).eps) * track_rms(W, visible)
 
 
+def sorted_lengths(a: Float[Array, "..."]) -> Float[Array, " N"]:
+    """The lengths ``a`` (non-negative, ``inf`` and NaN allowed), flattened and sorted in
+    ascending order, NaN last: as ``jnp.sort``, by sorting their bit patterns as integers,
+    which orders non-negative IEEE floats alike. XLA:CPU sorts integers with a plain
+    comparison and floats with a total-order comparator: 25200 float64 lengths (the paper's
+    cube) in 1.4 ms instead of 8.3 ms, and a robust trial sorts 16 times."""
+    integer = jnp.dtype(f"int{8 * a.dtype.itemsize}")
+    bits = jax.lax.bitcast_convert_type(jnp.abs(a).ravel(), integer)  # abs: -0.0 sorts as 0.0
+    return jax.lax.bitcast_convert_type(jnp.sort(bits), a.dtype)
+
+
+def masked_median(a: Float[Array, "..."], mask: Bool[Array, "..."]) -> Float[Array, ""]:
+    """The median of the lengths ``a`` in ``mask``, NaN ones left out (NaN where none is
+    left): ``jnp.nanmedian(jnp.where(mask, a, nan))``, computed alike from `sorted_lengths`."""
+    valid = mask & ~jnp.isnan(a)
+    x = sorted_lengths(jnp.where(valid, a, jnp.inf))
+    count = valid.sum().astype(a.dtype)
+    # As jnp.nanmedian: linear interpolation between the two middle values.
+    q = 0.5 * (count - 1)
+    low, high = jnp.floor(q), jnp.ceil(q)
+    index = lambda i: jnp.clip(i, 0, x.size - 1).astype(int)  # noqa: E731
+    below, above = x[index(low)], x[index(high)]
+    middle = jnp.where(low == high, below, below * (1 - (q - low)) + above * (q - low))
+    return jnp.where(count > 0, middle, jnp.nan)
+
+
 def median_scale(errors: Float[Array, "m n"], mask: Bool[Array, "m n"], floor: Float[Array, ""]) -> Float[Array, ""]:
     """``max(median(|e_ij|) / sqrt(2 ln 2), floor)`` over the entries in ``mask``: the
     Rayleigh scale of Gaussian residuals, robust to fewer than half outliers."""
-    return jnp.maximum(jnp.nanmedian(jnp.where(mask, errors, jnp.nan)) / RAYLEIGH_MEDIAN, floor)
+    return jnp.maximum(masked_median(errors, mask) / RAYLEIGH_MEDIAN, floor)
 
 
 def log_inlier_density(a: Float[Array, "..."], sigma: Float[Array, ""], nu: Float[Array, ""]) -> Float[Array, "..."]:
@@ -258,7 +284,7 @@ def fit(errors: Float[Array, "m n"], visible: Bool[Array, "m n"], floor: Float[A
     sigmas, epss, lls = jax.lax.map(lambda nu: _fit_nu(a, visible, A, sigma0, eps0, floor, nu), nus)
     best = jnp.argmax(jnp.where(jnp.isfinite(lls), lls, -jnp.inf))
     sigma, nu, eps = sigmas[best], nus[best], epss[best]
-    exact = jnp.nanmedian(jnp.where(visible, errors, jnp.nan)) / RAYLEIGH_MEDIAN < floor
+    exact = masked_median(errors, visible) / RAYLEIGH_MEDIAN < floor
     return ResidualModel(sigma, nu, eps, _threshold(sigma, nu, eps, A), exact)
 
 
@@ -275,7 +301,7 @@ def misfit(errors: Float[Array, "m n"], inliers: Bool[Array, "m n"], model: Resi
     """Kolmogorov--Smirnov distance between the kept residual lengths and the fitted
     inlier law truncated at the threshold: the check that the entries called inliers
     are one population. Zero for exact tracks (their residuals are round-off)."""
-    x = jnp.sort(jnp.where(inliers, errors, jnp.inf).ravel())
+    x = sorted_lengths(jnp.where(inliers, errors, jnp.inf))
     count = jnp.maximum(inliers.sum(), 1)
     rank = jnp.arange(1, x.size + 1, dtype=errors.dtype)
     cut = inlier_cdf(model.threshold, model.sigma, model.nu)

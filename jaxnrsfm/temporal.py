@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from . import residuals
 from .tracks import to_frames
 
 
@@ -62,7 +63,7 @@ def smooth(W: Float[Array, "2m n"], inliers: Bool[Array, "m n"], scale: Float[Ar
     (`prediction_errors`) is at most ``scale``, the low-rank model's residual scale
     -- the tracks predict a typical inlier at least as well as the model does."""
     errors = prediction_errors(W, inliers)
-    return jnp.nanmedian(jnp.where(inliers & jnp.isfinite(errors), errors, jnp.nan)) <= scale
+    return residuals.masked_median(errors, inliers & jnp.isfinite(errors)) <= scale
 
 
 def take_back(

@@ -295,6 +295,27 @@ def test_block_preconditioner_inverts_the_normal_matrix_blocks():
     np.testing.assert_allclose(found, expected, atol=1e-9 * np.abs(expected).max())
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_lengths_sorted_and_their_median_as_numpy(dtype):
+    # residuals.sorted_lengths sorts the lengths' bit patterns as integers (faster on
+    # XLA:CPU): the same order as jnp.sort, and the same median as jnp.nanmedian, with
+    # zeros, -0.0, inf, NaN (left out), odd and even counts, and nothing in the mask.
+    @jax.jit
+    def both(a, mask):
+        lengths = jnp.where(mask, a, jnp.inf)
+        ours = residuals.sorted_lengths(lengths), residuals.masked_median(a, mask)
+        return ours, (jnp.sort(lengths.ravel()), jnp.nanmedian(jnp.where(mask, a, jnp.nan)))
+
+    rng = np.random.default_rng(0)
+    for trial in range(60):
+        a = np.abs(rng.standard_normal((5, 7))) * (rng.random((5, 7)) > 0.2)
+        a.flat[0] = [np.nan, np.inf, -0.0, 1.0][trial % 4]
+        mask = rng.random((5, 7)) > (0.3 if trial % 9 else 1.0)
+        ours, theirs = both(jnp.asarray(a, dtype), jnp.asarray(mask))
+        np.testing.assert_array_equal(ours[0], theirs[0])
+        np.testing.assert_array_equal(ours[1], theirs[1])
+
+
 def test_residual_model_fit_converges_where_em_crawls():
     # Rayleigh residuals with lognormal per-frame and per-point scales (0.5), no outliers:
     # heavy-tailed, and the likelihood is flat in the outlier fraction, where EM alone
