@@ -115,8 +115,11 @@ def masked_median(a: Float[Array, "..."], mask: Bool[Array, "..."]) -> Float[Arr
     # As jnp.nanmedian: linear interpolation between the two middle values.
     q = 0.5 * (count - 1)
     low, high = jnp.floor(q), jnp.ceil(q)
-    index = lambda i: jnp.clip(i, 0, x.size - 1).astype(int)  # noqa: E731
-    below, above = x[index(low)], x[index(high)]
+
+    def at(i):
+        return x[jnp.clip(i, 0, x.size - 1).astype(int)]
+
+    below, above = at(low), at(high)
     middle = jnp.where(low == high, below, below * (1 - (q - low)) + above * (q - low))
     return jnp.where(count > 0, middle, jnp.nan)
 
