@@ -147,44 +147,69 @@ def _log_tail(z, nu):
     return jnp.where(finite, -(nu_ + 2) / 2 * jnp.log1p(z / nu_), -z / 2)
 
 
-def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
-    # EM for (eps, sigma) at fixed nu. A t-distributed 2-vector is Gaussian given a
-    # Gamma-distributed precision; its expected value u = (nu + 2) / (nu + a^2/sigma^2)
-    # down-weights the tail in the scale update (1 for Rayleigh).
+def _em(x, data, nu, mask):
+    # One EM step for (eps, sigma) at fixed nu from x = (log sigma, logit eps); the
+    # log-likelihood at x, its gradient and its Hessian in x (in closed form: no nested
+    # autodiff to trace). A t-distributed 2-vector is Gaussian given a Gamma-distributed
+    # precision; its expected value u = (nu + 2) / (nu + a^2/sigma^2) down-weights the tail
+    # in the scale update (1 for Rayleigh).
     finite = jnp.isfinite(nu)
     nu_ = jnp.where(finite, nu, 1.0)  # the Rayleigh branch must not see inf (double where)
+    a, log_a, A, floor = data
+    sigma, eps = jnp.exp(x[0]), jax.nn.sigmoid(x[1])
+    z = (a / sigma) ** 2
+    # The log-odds of inlier against outlier, and from them the responsibility
+    # (sigmoid) and the log-likelihood (log_out + softplus) with one exponential.
+    log_out = jnp.log(eps) - jnp.log(A)
+    odds = jnp.log1p(-eps) + log_a - 2 * x[0] + _log_tail(z, nu) - log_out
+    small = jnp.exp(-jnp.abs(odds))
+    r = jnp.where(mask, jnp.where(odds >= 0, 1.0, small) / (1.0 + small), 0.0)
+    log_likelihood = jnp.sum(jnp.where(mask, log_out + jnp.maximum(odds, 0.0) + jnp.log1p(small), 0.0))
+    u = jnp.where(finite, (nu_ + 2) / (nu_ + z), 1.0)
+    count = jnp.maximum(mask.sum(), 1)
+    # d odds / d log sigma = u z - 2 and d odds / d logit eps = -1, so with
+    # r (1 - r) = small / (1 + small)^2 and d(u z)/d log sigma = -2 z w:
+    slope = u * z - 2
+    spread = jnp.where(mask, small / (1.0 + small) ** 2, 0.0)
+    w = jnp.where(finite, u * nu_ / (nu_ + z), 1.0)
+    gradient = jnp.stack([jnp.sum(r * slope), count * (1 - eps) - jnp.sum(r)])
+    cross = -jnp.sum(spread * slope)
+    hessian = jnp.array(
+        [
+            [jnp.sum(spread * slope**2 - 2 * r * w * z), cross],
+            [cross, jnp.sum(spread) - count * eps * (1 - eps)],
+        ]
+    )
+    sigma = jnp.sqrt(jnp.sum(r * u * a**2) / jnp.maximum(2 * jnp.sum(r), 1.0))
+    eps = jnp.clip(1.0 - jnp.sum(r) / count, MIN_EPS, 0.5)
+    return _unconstrained(jnp.maximum(sigma, floor), eps), log_likelihood, gradient, hessian
 
+
+@jax.custom_jvp
+def _at_fixed_point(x, data, nu, mask):
+    # x, EM's fixed point x = F(x, data) (`_em`), as a function of data: in value x itself;
+    # its derivative by the implicit function theorem, dx = (I - F_x)^-1 F_data ddata, not
+    # through the loop that found it (which reverse mode cannot differentiate). Huber's
+    # scale is differentiated. A rule, so that an undifferentiated fit does not pay for it:
+    # F_x's two forward-mode passes ran in every fit (seven a fit).
+    return x
+
+
+@_at_fixed_point.defjvp
+def _at_fixed_point_jvp(primals, tangents):
+    x, data, nu, mask = primals
+    _, t_data, _, _ = tangents
+    _, F_data = jax.jvp(lambda data: _em(x, data, nu, mask)[0], (data,), (t_data,))
+    I_minus_J = jnp.eye(2, dtype=x.dtype) - jax.jacfwd(lambda x: _em(x, data, nu, mask)[0])(x)
+    # A singular system (EM's map with a unit eigenvalue) would make the tangent NaN.
+    singular = I_minus_J[0, 0] * I_minus_J[1, 1] == I_minus_J[0, 1] * I_minus_J[1, 0]
+    return x, _solve2(jnp.where(singular, jnp.eye(2, dtype=x.dtype), I_minus_J), F_data)
+
+
+def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
+    # (sigma, eps) at fixed nu by EM with Newton steps (`_em`), and the log-likelihood.
     def em(x, data):
-        # One EM step from x = (log sigma, logit eps); the log-likelihood at x, its
-        # gradient and its Hessian in x (in closed form: no nested autodiff to trace).
-        a, log_a, A, floor = data
-        sigma, eps = jnp.exp(x[0]), jax.nn.sigmoid(x[1])
-        z = (a / sigma) ** 2
-        # The log-odds of inlier against outlier, and from them the responsibility
-        # (sigmoid) and the log-likelihood (log_out + softplus) with one exponential.
-        log_out = jnp.log(eps) - jnp.log(A)
-        odds = jnp.log1p(-eps) + log_a - 2 * x[0] + _log_tail(z, nu) - log_out
-        small = jnp.exp(-jnp.abs(odds))
-        r = jnp.where(mask, jnp.where(odds >= 0, 1.0, small) / (1.0 + small), 0.0)
-        log_likelihood = jnp.sum(jnp.where(mask, log_out + jnp.maximum(odds, 0.0) + jnp.log1p(small), 0.0))
-        u = jnp.where(finite, (nu_ + 2) / (nu_ + z), 1.0)
-        count = jnp.maximum(mask.sum(), 1)
-        # d odds / d log sigma = u z - 2 and d odds / d logit eps = -1, so with
-        # r (1 - r) = small / (1 + small)^2 and d(u z)/d log sigma = -2 z w:
-        slope = u * z - 2
-        spread = jnp.where(mask, small / (1.0 + small) ** 2, 0.0)
-        w = jnp.where(finite, u * nu_ / (nu_ + z), 1.0)
-        gradient = jnp.stack([jnp.sum(r * slope), count * (1 - eps) - jnp.sum(r)])
-        cross = -jnp.sum(spread * slope)
-        hessian = jnp.array(
-            [
-                [jnp.sum(spread * slope**2 - 2 * r * w * z), cross],
-                [cross, jnp.sum(spread) - count * eps * (1 - eps)],
-            ]
-        )
-        sigma = jnp.sqrt(jnp.sum(r * u * a**2) / jnp.maximum(2 * jnp.sum(r), 1.0))
-        eps = jnp.clip(1.0 - jnp.sum(r) / count, MIN_EPS, 0.5)
-        return _unconstrained(jnp.maximum(sigma, floor), eps), log_likelihood, gradient, hessian
+        return _em(x, data, nu, mask)
 
     # log p_in(a) = log a - 2 log sigma + tail (log_inlier_density), with log a computed once.
     data = (a, _log_length(a), A, floor)
@@ -219,16 +244,9 @@ def _fit_nu(a, mask, A, sigma0, eps0, floor, nu):
 
     x0 = jax.lax.stop_gradient(_unconstrained(sigma0.astype(a.dtype), eps0.astype(a.dtype)))
     start = (x0, em(x0, fixed), 0, jnp.asarray(jnp.inf, a.dtype))
-    x, _, _, _ = jax.lax.while_loop(going, cycle, start)
-    # The gradient (Huber's scale is differentiated) by the implicit function theorem at
-    # EM's fixed point x = F(x, data), not through the loop (which reverse mode cannot
-    # differentiate):
-    # dx = (I - F_x)^-1 F_data ddata. The correction is zero in value.
-    F, log_likelihood, _, _ = em(x, data)
-    I_minus_J = jax.lax.stop_gradient(jnp.eye(2, dtype=a.dtype) - jax.jacfwd(lambda x: em(x, fixed)[0])(x))
-    # A singular system (EM's map with a unit eigenvalue) would make the zero correction NaN.
-    singular = I_minus_J[0, 0] * I_minus_J[1, 1] == I_minus_J[0, 1] * I_minus_J[1, 0]
-    x = x + _solve2(jnp.where(singular, jnp.eye(2, dtype=a.dtype), I_minus_J), F - jax.lax.stop_gradient(F))
+    # The loop's carry holds the EM pass at its last x, and with it the log-likelihood there.
+    x, (_, log_likelihood, _, _), _, _ = jax.lax.while_loop(going, cycle, start)
+    x = _at_fixed_point(x, data, nu, mask)
     return jnp.exp(x[0]), jax.nn.sigmoid(x[1]), log_likelihood
 
 
