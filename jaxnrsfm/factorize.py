@@ -85,22 +85,21 @@ def _grams(weights: Float[Array, "b n"], A: Float[Array, "p r n"]) -> Float[Arra
 
 
 def _structure(
-    W: Float[Array, "2m n"], weights: Float[Array, "m n"], M: Float[Array, "2m r"], damping: Float[Array, ""]
+    weighted: Float[Array, "2m n"], weights: Float[Array, "m n"], M: Float[Array, "2m r"], damping: Float[Array, ""]
 ) -> Float[Array, "r n"]:
     # S given M: each column of S is an independent r x r normal equation over its visible
     # entries, one batched solve; ``damping`` adds that fraction of each equation's mean
-    # diagonal to its diagonal (a ridge).
-    G = _grams(weights.T, M.reshape(-1, 2, M.shape[1]).transpose(1, 2, 0))
-    rhs = (row_mask(weights) * W).T @ M
-    return _solve_batched(G, rhs[..., None], damping)[..., 0].T
+    # diagonal to its diagonal (a ridge). ``weighted``: the tracks times their weights.
+    G = _grams(weights.T, to_frames(M).transpose(1, 2, 0))
+    return _solve_batched(G, (weighted.T @ M)[..., None], damping)[..., 0].T
 
 
 def _motion(
-    W: Float[Array, "2m n"], weights: Float[Array, "m n"], S: Float[Array, "r n"], damping: Float[Array, ""]
+    weighted: Float[Array, "2m n"], weights: Float[Array, "m n"], S: Float[Array, "r n"], damping: Float[Array, ""]
 ) -> Float[Array, "2m r"]:
     # M given S: the two rows of a frame share one r x r normal equation.
     G = _grams(weights, S[None])
-    rhs = to_frames(row_mask(weights) * W) @ S.T  # (m, 2, r)
+    rhs = to_frames(weighted) @ S.T  # (m, 2, r)
     return _solve_batched(G, rhs.transpose(0, 2, 1), damping).transpose(0, 2, 1).reshape(-1, S.shape[0])
 
 
@@ -145,6 +144,7 @@ def masked_als(
     """
     weights = jnp.asarray(weights, W.dtype)
     mask = row_mask(weights)
+    weighted = mask * W  # the half-sweeps' right-hand sides: formed once, not every sweep
     scale = jnp.sum(mask * W**2)
     floor = jnp.finfo(W.dtype).eps ** 2 * scale
     start, grow, shrink, smallest, largest = EXTRAPOLATION
@@ -164,12 +164,12 @@ def masked_als(
     def body(state):
         M, S, c, _, step, beta = state
         damped, ridge = step < damped_steps, damping(step)
-        new = _motion(W, weights, S, ridge)
+        new = _motion(weighted, weights, S, ridge)
         # No extrapolation in a damped sweep (its fixed point is the ridge's, not the
         # cost's) nor from the start, whose cost is not yet known.
         plain = damped | (step == 0)
         far = new + jnp.where(plain, 0.0, beta) * (new - M)
-        S_far = _structure(W, weights, far, ridge)
+        S_far = _structure(weighted, weights, far, ridge)
         c_far = cost(far, S_far)
         keep = plain | (c_far < c)
 
@@ -177,7 +177,7 @@ def masked_als(
         # CPU runtime may run concurrently have deadlocked it (see `initial_fit`): the
         # ``0 * c`` terms order this solve after S_far's, and the QR below after it.
         def sweep(_):
-            S_new = _structure(W, weights, new + 0.0 * c_far, ridge)
+            S_new = _structure(weighted, weights, new + 0.0 * c_far, ridge)
             return new, S_new, cost(new, S_new)
 
         M, S, c_new = jax.lax.cond(keep, lambda _: (far, S_far, c_far), sweep, None)
@@ -190,7 +190,7 @@ def masked_als(
         # stalls at its own (ridge-biased) fixed point, which the undamped sweeps must leave.
         return Q, R @ S, c_new, jnp.where(damped, inf, c), step + 1, beta
 
-    S0 = _structure(W, weights, M0, damping(0))
+    S0 = _structure(weighted, weights, M0, damping(0))
     M, S, c, c_prev, steps, _ = jax.lax.while_loop(
         cond, body, (M0, S0, inf, inf, jnp.array(0), jnp.array(start, W.dtype))
     )

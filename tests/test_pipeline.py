@@ -180,5 +180,6 @@ def test_als_half_sweeps_solve_their_weighted_normal_equations():
     rows = [np.linalg.solve((S * c[i]) @ S.T, S @ (c[i] * W[i])) for i in range(2 * m)]
     columns = [np.linalg.solve((M.T * c[:, j]) @ M, M.T @ (c[:, j] * W[:, j])) for j in range(n)]
     # The solves add a relative ridge of 1e-12 (linalg.add_ridge).
-    np.testing.assert_allclose(_motion(W, weights, S, 0.0), np.stack(rows), atol=1e-9)
-    np.testing.assert_allclose(_structure(W, weights, M, 0.0), np.stack(columns, axis=1), atol=1e-9)
+    weighted = jnp.asarray(c) * W
+    np.testing.assert_allclose(_motion(weighted, weights, S, 0.0), np.stack(rows), atol=1e-9)
+    np.testing.assert_allclose(_structure(weighted, weights, M, 0.0), np.stack(columns, axis=1), atol=1e-9)
