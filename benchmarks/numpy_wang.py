@@ -87,10 +87,9 @@ def _solve(G, rhs):
     return np.linalg.solve(G + ridge * np.eye(r), rhs[..., None])[..., 0]
 
 
-def masked_als(W, weights, M, max_steps=500, rtol=1e-10, extrapolate=True):
-    # jaxnrsfm.factorize.masked_als: each sweep's new M extrapolated (if ``extrapolate``)
-    # along its change and kept if its fit costs less than the last iterate's, else the
-    # plain sweep.
+def masked_als(W, weights, M, max_steps=500, rtol=1e-10):
+    # jaxnrsfm.factorize.masked_als: each sweep's new M extrapolated along its change and
+    # kept if its fit costs less than the last iterate's, else the plain sweep.
     mask = np.repeat(weights, 2, axis=0)
     floor = np.finfo(float).eps ** 2 * np.sum(mask * W**2)
 
@@ -106,7 +105,7 @@ def masked_als(W, weights, M, max_steps=500, rtol=1e-10, extrapolate=True):
     S, previous, beta = structure(M), np.inf, 1.0
     for step in range(max_steps):
         new = motion(S)
-        far = new + (beta if step and extrapolate else 0.0) * (new - M)  # plain ALS never costs more
+        far = new + (beta if step else 0.0) * (new - M)
         S_far = structure(far)
         c_far = cost(far, S_far)
         if step == 0 or c_far < previous:
@@ -136,12 +135,12 @@ def wang(W, visible, rank, passes=3, pass_rtol=1e-6):
         if r > M.shape[1]:  # new directions: the weighted residual's leading singular vectors
             U, s, _ = np.linalg.svd(np.repeat(kept, 2, axis=0) * (W - M @ S), full_matrices=False)
             M = np.concatenate([M, U[:, : r - M.shape[1]] * s[: r - M.shape[1]]], axis=1)
-            M, S = masked_als(W, weights, M, rtol=pass_rtol, extrapolate=False)
+            M, S = masked_als(W, weights, M, rtol=pass_rtol)
         errors = entry_errors(W, M @ S)
         bound = factor * robust_scale(errors, kept, floor)
         kept = visible & (errors <= bound)
         weights = np.where(visible, 1 / (1 + (errors / bound) ** 2), 0.0)
-        M, S = masked_als(W, weights, M, rtol=pass_rtol, extrapolate=False)
+        M, S = masked_als(W, weights, M, rtol=pass_rtol)
     errors = entry_errors(W, M @ S)
     threshold, sigma = residual_threshold(errors, visible, floor)
     inliers = visible & (errors <= threshold)

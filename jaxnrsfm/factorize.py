@@ -120,7 +120,6 @@ def masked_als(
     max_steps: int = 500,
     rtol: float = 1e-10,
     damped_steps: int | Int[Array, ""] = 0,
-    extrapolate: bool = True,
 ) -> tuple[Float[Array, "2m r"], Float[Array, "r n"], Int[Array, ""], Bool[Array, ""]]:
     """Minimise ``sum_ij weights_ij |w_ij - M_i s_j|^2`` by alternating least squares from ``M0``.
 
@@ -130,18 +129,18 @@ def masked_als(
     the cost by less than ``rtol`` of itself, or when the cost is negligible against the
     data.
 
-    Each undamped sweep is extrapolated (unless ``extrapolate``, static, is False): the
-    new ``M`` (given the last ``S``) is moved on along its change, ``M + beta (M_new -
-    M)``, and kept if the fit with its own ``S`` costs less than the last iterate;
-    otherwise the plain sweep is taken (one more solve for ``S``). ``beta`` grows while
-    extrapolations are kept and shrinks when one is not (`EXTRAPOLATION`). Plain ALS
-    crawls through the "swamps" of a missing-data problem: on the paper's cube with its
-    outliers missing (rank 13, sigma 2), from the SVD of the zero-filled tracks, two of
-    six 30-frame trials took 375 and 323 sweeps to ``rtol = 1e-10``, extrapolated 53 and
-    87 (the same minima to 1e-9), and at ``rtol = 1e-6`` plain ALS stopped in the swamp
-    (cost 38177.3 against the minimum 38055.7) where the extrapolated sweeps reached
-    38055.74 in 34; on 100 frames 68 against 29 sweeps. Where plain ALS converges in a
-    few sweeps, the extrapolated one takes about two more.
+    Each undamped sweep is extrapolated: the new ``M`` (given the last ``S``) is moved on
+    along its change, ``M + beta (M_new - M)``, and kept if the fit with its own ``S``
+    costs less than the last iterate; otherwise the plain sweep is taken (one more solve
+    for ``S``). ``beta`` grows while extrapolations are kept and shrinks when one is not
+    (`EXTRAPOLATION`). Plain ALS crawls through the "swamps" of a missing-data problem:
+    on the paper's cube with its outliers missing (rank 13, sigma 2), from the SVD of the
+    zero-filled tracks, two of six 30-frame trials took 375 and 323 sweeps to
+    ``rtol = 1e-10``, extrapolated 53 and 87 (the same minima to 1e-9), and at the
+    rejection passes' 1e-6 plain ALS stopped in the swamp (cost 38177.3 against the
+    minimum 38055.7) where the extrapolated sweeps reached 38055.74 in 34; on 100 frames
+    68 against 29 sweeps. Where plain ALS converges in a few sweeps, the extrapolated one
+    takes about two more.
     """
     weights = jnp.asarray(weights, W.dtype)
     mask = row_mask(weights)
@@ -162,7 +161,10 @@ def masked_als(
         progress = (step < damped_steps) | ((c > floor) & (c_prev - c > rtol * c))
         return (step == 0) | ((step < max_steps) & progress)
 
-    def extrapolated(M, new, c, beta, damped, ridge, step):
+    def body(state):
+        M, S, c, _, step, beta = state
+        damped, ridge = step < damped_steps, damping(step)
+        new = _motion(weighted, weights, S, ridge)
         # No extrapolation in a damped sweep (its fixed point is the ridge's, not the
         # cost's) nor from the start, whose cost is not yet known.
         plain = damped | (step == 0)
@@ -182,17 +184,6 @@ def masked_als(
         beta = jnp.where(
             plain, beta, jnp.where(keep, jnp.minimum(grow * beta, largest), jnp.maximum(shrink * beta, smallest))
         )
-        return M, S, c_new, beta
-
-    def body(state):
-        M, S, c, _, step, beta = state
-        damped, ridge = step < damped_steps, damping(step)
-        new = _motion(weighted, weights, S, ridge)
-        if extrapolate:
-            M, S, c_new, beta = extrapolated(M, new, c, beta, damped, ridge, step)
-        else:
-            S = _structure(weighted, weights, new, ridge)
-            M, c_new = new, cost(new, S)
         # Keep M orthonormal so the gauge cannot drift towards an ill-conditioned pair.
         Q, R = jnp.linalg.qr(M + 0.0 * c_new)
         # A damped sweep's cost is no reference for the convergence test: damped ALS

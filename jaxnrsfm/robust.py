@@ -242,11 +242,7 @@ def wang(
         last = jnp.where(reweight, bound, last)
         kept = jnp.where(reweight, visible & (errors <= bound), kept)
         weights = jnp.where(reweight, jnp.where(visible, 1.0 / (1.0 + (errors / bound) ** 2), 0.0), weights)
-        # Plain sweeps: a pass's loose fit stays near its warm start, where extrapolated
-        # sweeps (masked_als's default) went on to the soft-weighted minimum, whose spare
-        # dimensions absorb outliers. On the cube at 20% outliers and sigma 4, 100 trials:
-        # wang / oracle 1.0354 extrapolated, 1.0245 plain; 5 and 2 trials beyond 1.1.
-        M, S, _, _ = masked_als(W, weights, M, extrapolate=False, **budget)
+        M, S, _, _ = masked_als(W, weights, M, **budget)
         return (M, S, weights, kept, last), None
 
     # The passes at one rank run as one loop: one copy of their fit in the compiled program.
