@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import jaxnrsfm as nr
-from jaxnrsfm import residuals
+from jaxnrsfm import residuals, robust
 from jaxnrsfm.factorize import svd_factors
 from jaxnrsfm.objective import _block_inverse, huber_loss, huber_residuals, robust_factorize
 
@@ -347,3 +347,39 @@ def test_residual_model_fit_converges_where_em_crawls():
     # The gradient (implicit, at EM's fixed point): sigma scales with the residuals.
     scaled = jax.grad(lambda s: residuals.fit(s * jnp.asarray(a), visible, floor).sigma)(1.0)
     np.testing.assert_allclose(scaled, model.sigma, rtol=1e-6)
+
+
+def _absorbed(offsets, seed=0):
+    # Exact rank-4 tracks (30 frames, 40 points), point 7 displaced by ``offsets`` in 8 of its
+    # 30 frames (27%), and the fit's structure of that point the least-squares fit of them,
+    # which the displacements pull: its other entries get residuals too.
+    rng = np.random.default_rng(seed)
+    m, n, r = 30, 40, 4
+    M, S = rng.standard_normal((2 * m, r)), rng.standard_normal((r, n))
+    W = M @ S
+    frames = rng.choice(m, 8, replace=False)
+    displaced = np.zeros((m, n), bool)
+    displaced[frames, 7] = True
+    W[2 * frames, 7] += rng.choice([-1, 1], 8) * rng.uniform(*offsets, 8)
+    S[:, 7] = np.linalg.lstsq(M, W[:, 7], rcond=None)[0]
+    return jnp.asarray(W), jnp.asarray(M), jnp.asarray(S), displaced
+
+
+def test_row_column_check_finds_outliers_a_point_absorbed():
+    # Outliers 5-10 boundaries off: the check re-fits the point by L1 given M and returns
+    # exactly those 8 entries, nothing else.
+    W, M, S, outliers = _absorbed((5.0, 10.0))
+    visible = jnp.ones(outliers.shape, bool)
+    assert float(nr.entry_errors(W, M @ S)[~outliers[:, 7], 7].max()) > 1.0  # the fit is pulled off its inliers
+    rejected = robust.row_column_check(W, visible, visible, M, S, jnp.asarray(1.0))
+    np.testing.assert_array_equal(rejected, outliers)
+
+
+def test_row_column_check_leaves_model_misfit():
+    # The same 8 entries 1.2-1.8 boundaries off (a point the model misfits in a few frames,
+    # as in motion capture): the L1 re-fit puts them beyond the boundary, but not
+    # `ROW_COLUMN_FAR` boundaries beyond, and the check leaves them.
+    W, M, S, misfit = _absorbed((1.2, 1.8))
+    visible = jnp.ones(misfit.shape, bool)
+    assert int((nr.entry_errors(W, M @ S) > 1.0).sum()) >= robust.ROW_COLUMN_GATE
+    assert not bool(robust.row_column_check(W, visible, visible, M, S, jnp.asarray(1.0)).any())
