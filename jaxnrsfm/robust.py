@@ -192,8 +192,8 @@ def wang(
        one; then the final inliers by `classify`, and (``RECLASSIFY`` rounds) the
        rejected entries that the least-squares fit of the inliers explains taken back, and
        those that their own track predicts (`jaxnrsfm.temporal`; only where the
-       tracks are smooth in time); then the inliers that their frame's or point's L1
-       re-fit rejects, where it puts several far beyond the boundary (`row_column_check`);
+       tracks are smooth in time); then the inliers that their frame's or point's
+       robust re-fit rejects, where it puts several far beyond the boundary (`row_column_check`);
     5. a weighted factorization of the inliers (if ``weighted``), with the weights of
        `step_weights` from the residuals of the inliers' least-squares fit.
 
@@ -276,10 +276,10 @@ def wang(
     # A rejected entry that continues its own track is not an outlier (jaxnrsfm.temporal).
     inliers = temporal.take_back(W, visible, inliers, take_back, model.sigma)
     # A frame or point with 25-30% outliers absorbs those it kept into its own parameters;
-    # its L1 re-fit, given the others, does not (row_column_check). It checks the
+    # its robust re-fit, given the others, does not (row_column_check). It checks the
     # least-squares fit of the inliers, warm-started where the reclassification left it.
     M, S, _, _ = masked_als(W, anchor_weights(W, visible, inliers, model.sigma), M, **tight)
-    inliers = inliers & ~row_column_check(W, visible, inliers, M, S, _boundary(model, threshold))
+    inliers = inliers & ~row_column_check(W, visible, inliers, M, S, _boundary(model, threshold), model.sigma)
     # The final weights are continuous functions of the tracks, through the inliers'
     # least-squares fit re-attached to W, and are differentiated as such: step 5's
     # weights of the inliers (if ``weighted``) and the rejected entries' weight, from the
@@ -306,12 +306,12 @@ def wang(
 
 
 ROW_COLUMN_GATE = 4
-"""`row_column_check` acts on a frame or point only where its L1 re-fit puts at least this
+"""`row_column_check` acts on a frame or point only where its robust re-fit puts at least this
 many of its inliers beyond `ROW_COLUMN_FAR` times the boundary."""
 
 ROW_COLUMN_FAR = 2.0
 """How far beyond the residual model's boundary, in multiples of it, an inlier's residual
-under its frame's or point's L1 re-fit must lie to count toward `ROW_COLUMN_GATE`. It is
+under its frame's or point's robust re-fit must lie to count toward `ROW_COLUMN_GATE`. It is
 what tells outliers from model misfit: under the fitted inlier law an entry lies beyond
 twice the boundary with probability ~1e-10 (Gaussian, boundary 3.4 scales) to ~4e-4
 (Student-t with 3 degrees of freedom, boundary 12 scales, as on motion capture). On the
@@ -334,9 +334,10 @@ def row_column_check(
     M: Float[Array, "2m r"],
     S: Float[Array, "r n"],
     boundary: Float[Array, ""],
-    iterations: int = 30,
+    scale: Float[Array, ""],
+    iterations: int = 10,
 ) -> Bool[Array, "m n"]:
-    """Inliers that their frame's or their point's L1 re-fit rejects, where it puts at least
+    """Inliers that their frame's or their point's robust re-fit rejects, where it puts at least
     `ROW_COLUMN_GATE` of that frame's or point's inliers beyond `ROW_COLUMN_FAR` times the
     ``boundary``.
 
@@ -344,14 +345,20 @@ def row_column_check(
     absorb the outliers it kept: on the paper's cube at 20% outliers (Fig. 5) that was the
     tail of trials 1.2-2.4 times the oracle's error, their recall still 0.99, the frame's
     or point's fit several sigma off. Each point's structure given ``M`` and each frame's
-    motion given ``S`` is re-fitted over all its observed entries by least entry lengths
-    (the convex L1-type loss, by ``iterations`` reweighted least-squares solves from the
-    fit), which a minority of outliers cannot pull."""
-    mask = row_mask(visible)
-    eps = jnp.sqrt(jnp.finfo(W.dtype).eps) * jnp.sqrt(jnp.sum(mask * W**2) / jnp.maximum(jnp.sum(mask), 1))
+    motion given ``S`` is re-fitted over all its observed entries by a convex Huber-type
+    loss of the entry lengths, quadratic up to the inlier ``scale`` and linear beyond
+    (``iterations`` reweighted least-squares solves from the fit, weights
+    ``1 / max(|e|, scale)``), which a minority of outliers cannot pull.
+
+    The floor at ``scale`` keeps every solve well conditioned. Floored at round-off instead
+    (least entry lengths, an L1 fit), 10 solves were far from converged and the check
+    rejected clean entries (Fig. 5, 20% outliers, sigma 1, seed 0: mean error 0.380 ->
+    0.417); it needed 30, 75 ms of a 410 ms trial. With the floor, 10 solves (~20 ms) gave
+    the L1 fit's Fig. 5 figures: at sigma 1, 3, 4, 5 one to three trials in 100 moved, by
+    at most 4%."""
 
     def reweight(errors):
-        return jnp.where(visible, 1.0 / jnp.maximum(errors, eps), 0.0)
+        return jnp.where(visible, 1.0 / jnp.maximum(errors, scale), 0.0)
 
     def columns(_, S):
         weights = reweight(entry_errors(W, M @ S))

@@ -366,20 +366,20 @@ def _absorbed(offsets, seed=0):
 
 
 def test_row_column_check_finds_outliers_a_point_absorbed():
-    # Outliers 5-10 boundaries off: the check re-fits the point by L1 given M and returns
+    # Outliers 5-10 boundaries off: the check re-fits the point robustly given M and returns
     # exactly those 8 entries, nothing else.
     W, M, S, outliers = _absorbed((5.0, 10.0))
     visible = jnp.ones(outliers.shape, bool)
     assert float(nr.entry_errors(W, M @ S)[~outliers[:, 7], 7].max()) > 1.0  # the fit is pulled off its inliers
-    rejected = robust.row_column_check(W, visible, visible, M, S, jnp.asarray(1.0))
+    rejected = robust.row_column_check(W, visible, visible, M, S, jnp.asarray(1.0), jnp.asarray(0.3))
     np.testing.assert_array_equal(rejected, outliers)
 
 
 def test_row_column_check_leaves_model_misfit():
     # The same 8 entries 1.2-1.8 boundaries off (a point the model misfits in a few frames,
-    # as in motion capture): the L1 re-fit puts them beyond the boundary, but not
+    # as in motion capture): the robust re-fit puts them beyond the boundary, but not
     # `ROW_COLUMN_FAR` boundaries beyond, and the check leaves them.
     W, M, S, misfit = _absorbed((1.2, 1.8))
     visible = jnp.ones(misfit.shape, bool)
     assert int((nr.entry_errors(W, M @ S) > 1.0).sum()) >= robust.ROW_COLUMN_GATE
-    assert not bool(robust.row_column_check(W, visible, visible, M, S, jnp.asarray(1.0)).any())
+    assert not bool(robust.row_column_check(W, visible, visible, M, S, jnp.asarray(1.0), jnp.asarray(0.3)).any())
