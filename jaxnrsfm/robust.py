@@ -311,20 +311,19 @@ many of its inliers beyond `ROW_COLUMN_FAR` times the boundary."""
 
 ROW_COLUMN_FAR = 2.0
 """How far beyond the residual model's boundary, in multiples of it, an inlier's residual
-under its frame's or point's robust re-fit must lie to count toward `ROW_COLUMN_GATE`. It is
-what tells outliers from model misfit: under the fitted inlier law an entry lies beyond
+under its frame's or point's robust re-fit must lie to count toward `ROW_COLUMN_GATE`. It
+is what tells outliers from model misfit: under the fitted inlier law an entry lies beyond
 twice the boundary with probability ~1e-10 (Gaussian, boundary 3.4 scales) to ~4e-4
 (Student-t with 3 degrees of freedom, boundary 12 scales, as on motion capture). On the
-paper's cube (Fig. 5, 20% outliers, seed 0)
-the outliers that a frame had absorbed came back at a median 2.1-5.3 times the boundary
-(at most 3.8-8.0) under the re-fit, 12-27 of them a frame; where the re-fit and the
-least-squares fit differ by chance, 2-3 entries at most 1.5 times it. On clean motion
-capture (Akhter's yoga and stretch), whose misfit is heavy-tailed and gathered on a few
-points, 5-13 of a point's entries lay beyond the boundary under the re-fit, at most 1.33
-times it: counting those (08b50fe, reverted) rejected clean entries and raised yoga's e3D
-from 0.096 to 0.165. Picked on those trials and sequences; on seed 2 of Fig. 5 (held out)
-the check took every 20%-outlier setting within 5% of the oracle (README, "Robust
-methods")."""
+paper's cube (Fig. 5, 20% outliers, seed 0) the outliers that a frame had absorbed came
+back at a median 2.1-5.3 times the boundary (at most 3.8-8.0) under an L1 re-fit, 12-27 of
+them a frame; where the re-fit and the least-squares fit differ by chance, 2-3 entries at
+most 1.5 times it. On clean motion capture (Akhter's yoga and stretch), whose misfit is
+heavy-tailed and gathered on a few points, 5-13 of a point's entries lay beyond the
+boundary under the re-fit, at most 1.33 times it: counting those (08b50fe, reverted)
+rejected clean entries and raised yoga's e3D from 0.096 to 0.165. Picked on those trials
+and sequences; on seed 2 of Fig. 5 (held out) the check took every 20%-outlier setting
+within 5% of the oracle (README, "Robust methods")."""
 
 
 def row_column_check(
@@ -368,14 +367,14 @@ def row_column_check(
         weights = reweight(entry_errors(W, motion @ S))
         return _motion(row_mask(weights) * W, weights, S, 0.0)
 
-    S_l1 = jax.lax.fori_loop(0, iterations, columns, S)
-    M_l1 = jax.lax.fori_loop(0, iterations, rows, M)
+    S_robust = jax.lax.fori_loop(0, iterations, columns, S)
+    M_robust = jax.lax.fori_loop(0, iterations, rows, M)
 
     def rejected(errors, axis):
         far = jnp.sum(inliers & (errors > ROW_COLUMN_FAR * boundary), axis, keepdims=True)
         return inliers & (errors > boundary) & (far >= ROW_COLUMN_GATE)
 
-    return rejected(entry_errors(W, M @ S_l1), 0) | rejected(entry_errors(W, M_l1 @ S), 1)
+    return rejected(entry_errors(W, M @ S_robust), 0) | rejected(entry_errors(W, M_robust @ S), 1)
 
 
 def huynh(
