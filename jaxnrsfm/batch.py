@@ -12,9 +12,10 @@ There is no batched algorithm here, only a choice of how to map
   a ``jax.vmap``): the solvers are while loops, so every trial of a batch runs as many
   steps as its slowest. On a CPU a batch's time per trial grows with its size (20 cube
   trials of ``wang``, paper size, 2-core CPU, one run, per trial against a loop: batches
-  of 2: 0.98x, 4: 1.14x, 5: 1.21x, 10: 1.29x, all 20 at once: 1.79x; the working set of
-  the batch, not only the lockstep), so there the default batch is `CPU_BATCH`; on an
-  accelerator, with spare width, all trials at once.
+  of 2: 0.98x, 4: 1.14x, 5: 1.21x, 10: 1.29x, all 20 at once: 1.79x; another day, side by
+  side, batches of 2: 1.51x, of 4: 1.67x; the working set of the batch, not only the
+  lockstep), so there the default batch is `CPU_BATCH`; on an accelerator, with spare
+  width, all trials at once.
 """
 
 from typing import Literal
@@ -31,7 +32,7 @@ from .tracks import prepare_tracks
 
 STRATEGIES = ("map", "vmap", "loop")
 
-CPU_BATCH = 4
+CPU_BATCH = 2
 """Trials per vmapped batch on a CPU when ``batch_size`` is not given (module docstring)."""
 
 
