@@ -5,7 +5,8 @@ noise-free truth for every method, beside the statistical floor.
     python benchmarks/fig5.py [--trials 100] [--noise 1 2 3 4 5] [--outliers 0.05 0.2] [--json sweep.json]
 
 This is ``jaxnrsfm.sweep.run_sweep`` (what ``jaxnrsfm sweep`` runs) printed as a table
-with the robust method's ratio to the oracle and its detection. The error of a trial is
+with the robust method's ratio to the oracle, the number of trials on which its error is
+beyond 1.1 times the oracle's (the tail that a mean hides), and its detection. The error of a trial is
 the per-coordinate RMS of W_hat against the noise-free tracks over the true inliers (the
 paper measures on "the original inlying data without outliers").
 """
@@ -42,7 +43,7 @@ def main():
             json.dump(result, f)
     methods = settings.methods
     print(f"{'outliers':>8} {'sigma':>5} {'floor':>6} " + " ".join(f"{m:>10}" for m in methods), end="")
-    print("  wang/oracle  wang P/R min   not ok   s/trial per method")
+    print("  wang/oracle  >1.1x  wang P/R min   not ok   s/trial per method")
     for ratio in settings.outliers:
         for sigma in settings.noise:
             cells = {c["method"]: c for c in result["cells"] if c["outliers"] == ratio and c["noise"] == sigma}
@@ -50,7 +51,10 @@ def main():
             line = f"{ratio:8.0%} {sigma:5.1f} {result['floor'][str(sigma)]:6.3f} "
             line += " ".join(f"{means[m]:10.3f}" for m in methods)
             if "wang" in methods and "oracle" in methods:
-                line += f"  {means['wang'] / means['oracle']:11.4f}"
+                # The mean ratio hides its tail: the trials (the same data for both) on which
+                # wang's error is beyond 1.1 times the oracle's.
+                tail = np.sum(np.array(cells["wang"]["error"]) > 1.1 * np.array(cells["oracle"]["error"]))
+                line += f"  {means['wang'] / means['oracle']:11.4f}  {tail:5d}"
             if "wang" in methods:
                 line += f"  {min(cells['wang']['precision']):.3f}/{min(cells['wang']['recall']):.3f}"
             failed = {m: len(cells[m]["success"]) - sum(cells[m]["success"]) for m in methods}
