@@ -6,9 +6,9 @@ noise-free truth for every method, beside the statistical floor.
 
 This is ``jaxnrsfm.sweep.run_sweep`` (what ``jaxnrsfm sweep`` runs) printed as a table
 with the robust method's ratio to the oracle, the number of trials on which its error is
-beyond 1.1 times the oracle's (the tail that a mean hides), and its detection. The error of a trial is
-the per-coordinate RMS of W_hat against the noise-free tracks over the true inliers (the
-paper measures on "the original inlying data without outliers").
+beyond 1.1 times the oracle's (the tail that a mean hides), and its detection. The error
+of a trial is the per-coordinate RMS of W_hat against the noise-free tracks over the true
+inliers (the paper measures on "the original inlying data without outliers").
 """
 
 import argparse

@@ -352,9 +352,9 @@ def row_column_check(
     The floor at ``scale`` keeps every solve well conditioned. Floored at round-off instead
     (least entry lengths, an L1 fit), 10 solves were far from converged and the check
     rejected clean entries (Fig. 5, 20% outliers, sigma 1, seed 0: mean error 0.380 ->
-    0.417); it needed 30, 75 ms of a 410 ms trial. With the floor, 10 solves (~20 ms) gave
-    the L1 fit's Fig. 5 figures: at sigma 1, 3, 4, 5 one to three trials in 100 moved, by
-    at most 4%."""
+    0.417); it needed 30, 75 ms of a 410 ms `wang` call on the paper's cube. With the
+    floor, 10 solves (~20 ms) gave the L1 fit's Fig. 5 figures: at sigma 1, 3, 4, 5 one to
+    three trials in 100 moved, by at most 4%."""
 
     def reweight(errors):
         return jnp.where(visible, 1.0 / jnp.maximum(errors, scale), 0.0)
