@@ -2,8 +2,8 @@
 
 ``reconstruct`` validates the tracks and the stages (before anything is compiled), then
 runs one jit-compiled pure pipeline of the stages (`jaxnrsfm.stages`): the outlier
-strategy's low-rank fit -> metric upgrade -> rotation recovery -> shape step. One
-sequence per call; a batch is ``jax.vmap`` of the same call.
+strategy's low-rank fit -> metric upgrade (where a stage reads it) -> rotation recovery ->
+shape step. One sequence per call; a batch is ``jax.vmap`` of the same call.
 """
 
 from typing import Literal
@@ -212,7 +212,9 @@ def reconstruct_prepared(
     else:
         fac = method(W, visible, rank=rank, complete=complete, solver=solver)
         M, S, t, _ = split_translation(fac.M, fac.S)
-    upgrade = metric_upgrade(M, S, t, k)
+    # The metric upgrade only where a stage reads it: the default stages do not, and on the
+    # paper's cube it was ~15% of the default pipeline's tracing.
+    upgrade = metric_upgrade(M, S, t, k) if rotations.needs_upgrade or shapes.needs_upgrade else None
     # The shapes explain the observed inliers, not the rank-3k+1 fit (with wang on the
     # Akhter sequences e3D fell by 0.4--4%, drink 0.0384 from the fit, 0.0368 from the
     # inliers); elsewhere the fit's values only place each frame's centroid.

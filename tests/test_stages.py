@@ -112,3 +112,23 @@ def test_stages_by_name_are_the_default_instances():
     # The paper's pipeline: shapes="upgrade" brings the upgrade's rotations with it.
     paper = nr.reconstruct(W, k=1, method="direct", shapes="upgrade")
     np.testing.assert_allclose(paper.rotations, by_name.rotations, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("stages", "upgrades"),
+    [
+        ({}, 0),  # the defaults: high-rank rotations, nuclear-norm shapes
+        ({"shapes": "upgrade"}, 1),
+        ({"rotations": "upgrade"}, 1),
+        ({"rotations": "high_rank", "shapes": RigidPrior()}, 1),  # a step of one's own: by default it may read it
+    ],
+)
+def test_metric_upgrade_only_where_a_stage_reads_it(monkeypatch, stages, upgrades):
+    # Traced only (jax.eval_shape): whether the pipeline computes the upgrade is decided then.
+    from jaxnrsfm import pipeline
+
+    calls = []
+    monkeypatch.setattr(pipeline, "metric_upgrade", lambda *args: calls.append(1) or nr.metric_upgrade(*args))
+    W = nr.bregler_sequence(jax.random.key(0), k=1, n_frames=8, n_points=10, noise=0.5).W
+    jax.eval_shape(lambda W: nr.reconstruct(W, k=1, method="direct", **stages), W)
+    assert len(calls) == upgrades

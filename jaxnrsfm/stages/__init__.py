@@ -1,7 +1,8 @@
 """The stages of a reconstruction, as ``eqx.Module``s to compose and extend:
 
 tracks -> `MaskedALS` (missing data) + `OutlierStrategy` (the low-rank fit)
--> metric upgrade -> `RotationRecovery` -> `ShapeStep` -> reconstruction.
+-> metric upgrade (where a stage reads it: ``needs_upgrade``) -> `RotationRecovery` -> `ShapeStep`
+-> reconstruction.
 
 Each abstract base documents its contract; `jaxnrsfm.reconstruct` takes instances.
 """

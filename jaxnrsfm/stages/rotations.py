@@ -9,6 +9,7 @@ relaxation (`TraceNormRotations`). The kernels live in `jaxnrsfm.refine` and
 """
 
 import abc
+from typing import ClassVar
 
 import equinox as eqx
 from jaxtyping import Array, Bool, Float
@@ -27,7 +28,14 @@ class RotationRecovery(eqx.Module):
     the metric upgrade (`jaxnrsfm.Euclidean`) and the centred affine motion ``M``
     ``(2m, 3k)`` it came from, and returns rotations ``(m, 3, 3)``: frame ``i`` projects
     with ``rotations[i, :2]``, in the frame sign (reflection) that fits the tracks. Pure
-    and jit-compatible."""
+    and jit-compatible.
+
+    ``upgrade`` is ``None`` where neither stage of the pipeline uses it (`needs_upgrade`
+    False for both): the pipeline then does not compute it."""
+
+    needs_upgrade: ClassVar[bool] = True
+    """Whether ``__call__`` reads the metric upgrade (a recovery of one's own: True unless
+    it says otherwise)."""
 
     @abc.abstractmethod
     def __call__(
@@ -87,11 +95,14 @@ class HighRankRotations(RotationRecovery):
         if self.rank is not None and self.rank > (top := min(2 * m, n - 1)):
             raise ValueError(f"rotation rank {self.rank} exceeds the centred tracks' rank, min(2m, n - 1) = {top}")
 
+    needs_upgrade: ClassVar[bool] = False
+
     def __call__(self, frames, observed, *, k, upgrade, M):
-        # The data dependency on the upgrade orders these LAPACK calls after its own: two
-        # independent batched LAPACK calls in one jit can deadlock on the CPU backend.
+        # Where the shape step made the pipeline compute the upgrade, the data dependency on
+        # it orders these LAPACK calls after its own: two independent batched LAPACK calls
+        # in one jit can deadlock on the CPU backend.
         return high_rank_rotations(
-            frames + 0.0 * upgrade.metric_residual,
+            frames if upgrade is None else frames + 0.0 * upgrade.metric_residual,
             self.rank,
             observed,
             min_rank=3 * k,

@@ -9,6 +9,7 @@ implements ``__call__``; the pipeline puts its shapes in the canonical gauge
 """
 
 import abc
+from typing import ClassVar
 
 import equinox as eqx
 from jaxtyping import Array, Bool, Float
@@ -29,7 +30,13 @@ class ShapeStep(eqx.Module):
 
     `euclidean` turns them into the reconstruction's `jaxnrsfm.Euclidean`
     (translations, canonical gauge, principal bases); `default_rotations` is the
-    rotation recovery a pipeline uses with this step when none is given."""
+    rotation recovery a pipeline uses with this step when none is given. ``upgrade`` is
+    ``None`` where neither stage of the pipeline uses it (`needs_upgrade` False for both):
+    the pipeline then does not compute it."""
+
+    needs_upgrade: ClassVar[bool] = True
+    """Whether the step reads the metric upgrade (a step of one's own: True unless it says
+    otherwise)."""
 
     @abc.abstractmethod
     def __call__(
@@ -96,11 +103,29 @@ class NuclearShapes(ShapeStep):
         if not isinstance(self.denoise, bool):
             raise ValueError(f"denoise must be True or False; got {self.denoise!r}")
 
+    needs_upgrade: ClassVar[bool] = False
+
     def __call__(self, frames, rotations, observed, *, upgrade):
+        # k is the upgrade's: its weights are (m, k).
+        return self.fit(frames, rotations, observed, k=upgrade.weights.shape[-1])
+
+    def fit(
+        self,
+        frames: Float[Array, "m 2 n"],
+        rotations: Float[Array, "m 3 3"],
+        observed: Bool[Array, "m n"] | None,
+        *,
+        k: int,
+    ) -> Float[Array, "m 3 n"]:
+        """The shapes (``__call__``) for ``k`` shape bases, without the metric upgrade."""
         if self.denoise:
-            # k is the upgrade's: its weights are (m, k).
-            frames = above_noise_part(frames, 3 * upgrade.weights.shape[-1])
+            frames = above_noise_part(frames, 3 * k)
         return nuclear_shapes(frames, rotations, observed, steps=self.steps, rho=self.rho)
+
+    def euclidean(self, tracks, rotations, observed, *, k, upgrade):
+        # The pipeline computes no upgrade for this step (needs_upgrade): k comes from it.
+        centred = tracks - tracks.mean(axis=2, keepdims=True)
+        return euclidean_from_shapes(rotations, self.fit(centred, rotations, observed, k=k), tracks, k, observed)
 
 
 class UpgradeShapes(ShapeStep):
