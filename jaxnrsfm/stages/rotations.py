@@ -70,6 +70,8 @@ class HighRankRotations(RotationRecovery):
     entries are refilled from the nuclear-norm shapes and the rotations solved again. Not
     tested for gradients."""
 
+    needs_upgrade: ClassVar[bool] = False
+
     rank: int | None = None
     """Rank of the factorization; ``None`` (the default): every direction of the tracks
     above the noise (`jaxnrsfm.refine.above_noise`), at least ``3k``. At most
@@ -94,8 +96,6 @@ class HighRankRotations(RotationRecovery):
         m, n = shape
         if self.rank is not None and self.rank > (top := min(2 * m, n - 1)):
             raise ValueError(f"rotation rank {self.rank} exceeds the centred tracks' rank, min(2m, n - 1) = {top}")
-
-    needs_upgrade: ClassVar[bool] = False
 
     def __call__(self, frames, observed, *, k, upgrade, M):
         # Where the shape step made the pipeline compute the upgrade, the data dependency on

@@ -88,6 +88,8 @@ class NuclearShapes(ShapeStep):
     0.1472 -> 0.1463, stretch 0.1241 -> 0.1235. On motion capture's exact projections
     the part above the noise is nearly all (drink 0.0262 -> 0.0263; the others unchanged)."""
 
+    needs_upgrade: ClassVar[bool] = False
+
     steps: int = 500
     """ADMM iterations (a fixed count: jit- and vmap-friendly)."""
     rho: float = 1.0
@@ -102,8 +104,6 @@ class NuclearShapes(ShapeStep):
             raise ValueError(f"steps must be a positive integer and rho > 0; got {self.steps!r}, {self.rho!r}")
         if not isinstance(self.denoise, bool):
             raise ValueError(f"denoise must be True or False; got {self.denoise!r}")
-
-    needs_upgrade: ClassVar[bool] = False
 
     def __call__(self, frames, rotations, observed, *, upgrade):
         # k is the upgrade's: its weights are (m, k).
