@@ -68,8 +68,21 @@ class ShapeStep(eqx.Module):
         """The reconstruction from uncentred ``tracks``: this step's shapes in the
         canonical gauge, with ``k`` principal bases."""
         centred = tracks - tracks.mean(axis=2, keepdims=True)
-        shapes = self(centred, rotations, observed, upgrade=upgrade)
+        shapes = self.fit(centred, rotations, observed, k=k, upgrade=upgrade)
         return euclidean_from_shapes(rotations, shapes, tracks, k, observed)
+
+    def fit(
+        self,
+        frames: Float[Array, "m 2 n"],
+        rotations: Float[Array, "m 3 3"],
+        observed: Bool[Array, "m n"] | None,
+        *,
+        k: int,
+        upgrade: Euclidean | None,
+    ) -> Float[Array, "m 3 n"]:
+        """The shapes for ``k`` shape bases: ``__call__`` by default; a step that does not
+        read the upgrade (`needs_upgrade` False) overrides this to work from ``k``."""
+        return self(frames, rotations, observed, upgrade=upgrade)
 
 
 class NuclearShapes(ShapeStep):
@@ -107,25 +120,13 @@ class NuclearShapes(ShapeStep):
 
     def __call__(self, frames, rotations, observed, *, upgrade):
         # k is the upgrade's: its weights are (m, k).
-        return self.fit(frames, rotations, observed, k=upgrade.weights.shape[-1])
+        return self.fit(frames, rotations, observed, k=upgrade.weights.shape[-1], upgrade=upgrade)
 
-    def fit(
-        self,
-        frames: Float[Array, "m 2 n"],
-        rotations: Float[Array, "m 3 3"],
-        observed: Bool[Array, "m n"] | None,
-        *,
-        k: int,
-    ) -> Float[Array, "m 3 n"]:
-        """The shapes (``__call__``) for ``k`` shape bases, without the metric upgrade."""
+    def fit(self, frames, rotations, observed, *, k, upgrade):
+        # The pipeline computes no upgrade for this step (needs_upgrade): k alone.
         if self.denoise:
             frames = above_noise_part(frames, 3 * k)
         return nuclear_shapes(frames, rotations, observed, steps=self.steps, rho=self.rho)
-
-    def euclidean(self, tracks, rotations, observed, *, k, upgrade):
-        # The pipeline computes no upgrade for this step (needs_upgrade): k comes from it.
-        centred = tracks - tracks.mean(axis=2, keepdims=True)
-        return euclidean_from_shapes(rotations, self.fit(centred, rotations, observed, k=k), tracks, k, observed)
 
 
 class UpgradeShapes(ShapeStep):
