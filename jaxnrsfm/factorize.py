@@ -20,11 +20,10 @@ from typing import Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .implicit import attach
-from .linalg import add_ridge, svd_factors
+from .linalg import add_ridge, grams, svd_factors, symmetric_products
 from .tracks import prepare_tracks, row_mask, to_frames
 from .varpro import varpro
 
@@ -70,27 +69,13 @@ def _solve_batched(
     return jax.scipy.linalg.cho_solve((factor, True), rhs)
 
 
-def _grams(weights: Float[Array, "b n"], A: Float[Array, "p r n"]) -> Float[Array, "b r r"]:
-    # ``G_b = sum_j weights_bj sum_p a_pj a_pj^T``: the normal matrices of a weighted
-    # least-squares problem per row of ``weights``, ALS's cost. Each is symmetric, so one
-    # matrix product forms the r(r+1)/2 distinct entries of all of them, which a gather
-    # spreads into place; the p = 2 coordinates of an entry share its weight and are summed
-    # first. Against one product per row of M over all r^2 entries, a fourth of the work.
-    r = A.shape[1]
-    rows, cols = np.triu_indices(r)
-    index = np.zeros((r, r), int)
-    index[rows, cols] = index[cols, rows] = np.arange(rows.size)
-    products = jnp.sum(A[:, rows] * A[:, cols], axis=0)  # (r(r+1)/2, n)
-    return (weights @ products.T)[:, index]
-
-
 def _structure(
     weighted: Float[Array, "2m n"], weights: Float[Array, "m n"], M: Float[Array, "2m r"], damping: Float[Array, ""]
 ) -> Float[Array, "r n"]:
     # S given M: each column of S is an independent r x r normal equation over its visible
     # entries, one batched solve; ``damping`` adds that fraction of each equation's mean
     # diagonal to its diagonal (a ridge). ``weighted``: the tracks times their weights.
-    G = _grams(weights.T, to_frames(M).transpose(1, 2, 0))
+    G = grams(weights.T, symmetric_products(to_frames(M).transpose(1, 2, 0)))
     return _solve_batched(G, (weighted.T @ M)[..., None], damping)[..., 0].T
 
 
@@ -98,7 +83,7 @@ def _motion(
     weighted: Float[Array, "2m n"], weights: Float[Array, "m n"], S: Float[Array, "r n"], damping: Float[Array, ""]
 ) -> Float[Array, "2m r"]:
     # M given S: the two rows of a frame share one r x r normal equation.
-    G = _grams(weights, S[None])
+    G = grams(weights, symmetric_products(S[None]))
     rhs = to_frames(weighted) @ S.T  # (m, 2, r)
     return _solve_batched(G, rhs.transpose(0, 2, 1), damping).transpose(0, 2, 1).reshape(-1, S.shape[0])
 

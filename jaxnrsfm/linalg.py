@@ -7,14 +7,20 @@ turns NaN, although no output that the pipeline uses depends on how the null spa
 spanned. The versions here return only the leading (or trailing) part and differentiate
 it through the pairs that cross the gap between the kept and the discarded part: the
 derivative is finite whenever the kept part is separated from the rest.
+
+Beside them, the small dense pieces the solvers share: ridged normal matrices and their
+Cholesky solve, the normal matrices of many weighted problems with one design (`grams`),
+and the nearest orthonormal rows.
 """
 
+import math
 from functools import partial
 
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
 import lineax as lx
+import numpy as np
 from jaxtyping import Array, Float
 
 
@@ -112,6 +118,30 @@ def add_ridge(G: Float[Array, "... r r"], damping: Float[Array, ""] | float = 0.
     relative = max(1e-12, 100 * float(jnp.finfo(G.dtype).eps)) + damping
     ridge = relative * jnp.trace(G, axis1=-2, axis2=-1)[..., None, None] / r + jnp.finfo(G.dtype).tiny
     return G + ridge * jnp.eye(r, dtype=G.dtype)
+
+
+def symmetric_products(A: Float[Array, "p r n"]) -> Float[Array, "q n"]:
+    """The ``q = r(r+1)/2`` distinct entries of ``sum_p a_pj a_pj^T`` for each column ``j``
+    (ALS's ``p = 2`` coordinates of an entry share its weight, and are summed here): what
+    `grams` weighs. Formed once for a design shared by many weighted problems (a
+    half-sweep's ``M`` or ``S``), each problem's normal matrix is then one row of a matrix
+    product."""
+    rows, cols = np.triu_indices(A.shape[1])
+    return jnp.sum(A[:, rows] * A[:, cols], axis=0)
+
+
+def grams(weights: Float[Array, "*b n"], products: Float[Array, "q n"]) -> Float[Array, "*b r r"]:
+    """``G = sum_j weights_j sum_p a_pj a_pj^T`` for each row of ``weights``, from the
+    `symmetric_products` of ``a``: the normal matrices of weighted least-squares problems
+    that share their design. Each is symmetric, so one matrix product forms the
+    ``r(r+1)/2`` distinct entries of all of them, which a gather spreads into place: a
+    fourth of the work of all ``r^2`` entries, and no ``(b, n, r)`` tensor of weighted rows
+    (which an ``einsum("nr,bn,ns->brs")`` formed)."""
+    r = (math.isqrt(8 * products.shape[0] + 1) - 1) // 2
+    rows, cols = np.triu_indices(r)
+    index = np.zeros((r, r), int)
+    index[rows, cols] = index[cols, rows] = np.arange(rows.size)
+    return (weights @ products.T)[..., index]
 
 
 class RidgeCholesky(lx.Cholesky):
