@@ -134,8 +134,8 @@ def grams(weights: Float[Array, "*b n"], products: Float[Array, "q n"]) -> Float
     """``G = sum_j weights_j sum_p a_pj a_pj^T`` for each row of ``weights``, from the
     `symmetric_products` of ``a``: the normal matrices of weighted least-squares problems
     that share their design. Each is symmetric, so one matrix product forms the
-    ``r(r+1)/2`` distinct entries of all of them, which a gather spreads into place: a
-    fourth of the work of all ``r^2`` entries, and no ``(b, n, r)`` tensor of weighted rows
+    ``r(r+1)/2`` distinct entries of all of them, which a gather spreads into place: about
+    half the work of all ``r^2`` entries, and no ``(b, n, r)`` tensor of weighted rows
     (which an ``einsum("nr,bn,ns->brs")`` formed)."""
     r = (math.isqrt(8 * products.shape[0] + 1) - 1) // 2
     rows, cols = np.triu_indices(r)
