@@ -281,7 +281,7 @@ def least_squares_fit(
         stalled = jnp.logical_not(converged)
         M, S, steps, converged = jax.lax.cond(stalled, finish_by_varpro, lambda *x: x, M, S, steps, converged)
         polish = jnp.logical_not(stalled)
-    _, M, S = attach(W, weights, M @ S, rank, polish=polish, polish_value=True)
+    _, M, S = attach(W, weights, M, S, rank, polish=polish, polish_value=True)
     return M, S, steps, converged
 
 

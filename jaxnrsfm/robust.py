@@ -292,7 +292,7 @@ def wang(
     def refit(_, carry):
         M, weights, _, steps = carry
         M, S, more, _ = masked_als(W, jax.lax.stop_gradient(weights), M, **tight)
-        fit, _, _ = attach(W_in, weights, M @ S, rank, steps=0)
+        fit, _, _ = attach(W_in, weights, M, S, rank, steps=0)
         errors = entry_errors(W_in, fit)
         return M, anchor_weights(W_in, visible, inliers, inlier_scale(errors, inliers, floor)), errors, steps + more
 
@@ -301,7 +301,7 @@ def wang(
     if weighted:
         weights = jnp.where(inliers, step_weights(errors, inliers, floor), weights)
     M, S, more, converged = masked_als(W, jax.lax.stop_gradient(weights), M, **tight)
-    _, M, S = attach(W_in, weights, M @ S, rank, steps=2)
+    _, M, S = attach(W_in, weights, M, S, rank, steps=2)
     return finish(W_in, inliers, M, S, _zero_translations(W), steps + more, converged)
 
 
@@ -533,7 +533,7 @@ def huber(
             fixed, visible, M, S, constant(d), constant(model.sigma), converged, **budget
         )
         d, steps = d * shrink, steps + more
-    _, M, S = attach(W, visible, M @ S, rank, d)
+    _, M, S = attach(W, visible, M, S, rank, d)
     inliers, _ = classify(W, M @ S, visible, threshold)
     return finish(W, inliers, M, S, _zero_translations(W), steps, converged)
 
