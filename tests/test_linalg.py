@@ -34,3 +34,4 @@ def test_product_factors_are_the_svd_factors_of_the_product():
     # and svd_factors of the product (the SVD the forward pass no longer takes) agrees too
     Ms, Ss = map(np.asarray, svd_factors(M @ S, 7))
     np.testing.assert_allclose(np.abs(Mb), np.abs(Ms), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.abs(Sb), np.abs(Ss), rtol=0, atol=1e-10)
