@@ -2,13 +2,18 @@
 5.1), random Bregler sequences, and the noise / outlier / missing-data injectors.
 
 Every generator is a pure function of a PRNG key, so a Monte Carlo batch is
-``jax.vmap(partial(deformable_cube, ...))(jax.random.split(key, trials))``.
+``jax.vmap(partial(deformable_cube, ...))(jax.random.split(key, trials))``. The Bregler
+sequences and the injectors are jit-compiled, their sizes and dtype static: called op by op,
+a first call dispatched some 70 small programs, each compiled on its own (a Bregler sequence
+1.7-2.1 s, compiled as one 0.8 s). The cube is not (see `deformable_cube`).
 
 Cameras are orthographic with unit scale (``x_ij = R_i[:2] X_j + c_i``): world units are
 image units. A general affine camera admits no Euclidean upgrade, and under a per-frame
 scale the Bregler weights absorb the scale, so unit-scale orthographic cameras are the
 family in which the ground-truth shapes are recoverable exactly.
 """
+
+from functools import partial
 
 import equinox as eqx
 import jax
@@ -70,6 +75,7 @@ def _choose(key: PRNGKeyArray, candidates: Bool[Array, "m n"], ratio) -> Bool[Ar
     return rank < jnp.round(ratio * candidates.sum())
 
 
+@jax.jit
 def inject_outliers(
     key: PRNGKeyArray,
     W: Float[Array, "2m n"],
@@ -97,6 +103,7 @@ def inject_outliers(
     return W + jnp.where(row_mask(chosen), step, 0.0), chosen
 
 
+@jax.jit
 def drop_entries(key: PRNGKeyArray, visible: Bool[Array, "m n"], ratio: float) -> Bool[Array, "m n"]:
     """Hide exactly ``round(ratio * #visible)`` visible entries, chosen uniformly."""
     return visible & ~_choose(key, visible, ratio)
@@ -173,6 +180,12 @@ def _cube_geometry() -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([rigid, *discs], axis=1), modes
 
 
+# Not jit-compiled, although a first call would take 0.7 s instead of 1.5-2.0: compiled as
+# one program, the cube's tracks differ in their last bits (XLA fuses the arithmetic), and
+# the noise-free finite-difference check of `wang` in tests/test_gradients.py, whose step
+# (1e-3) was chosen on these tracks, then misses its tolerance: 2.1e-5 against 1e-5 (at a
+# step of 3e-4, 4e-8; on the op-by-op tracks 1.5e-7 at 1e-3 and 7e-5 at 3e-4). It needs
+# a step rule that does not rest on the tracks' last bits first.
 def deformable_cube(
     key: PRNGKeyArray,
     *,
@@ -209,6 +222,7 @@ def deformable_cube(
     return _observe(k_obs, shapes, rotations, translations, weights, bases, noise, outlier_ratio, missing_ratio)
 
 
+@partial(jax.jit, static_argnames=("k", "n_frames", "n_points", "dtype"))
 def bregler_sequence(
     key: PRNGKeyArray,
     *,
