@@ -2,10 +2,11 @@
 5.1), random Bregler sequences, and the noise / outlier / missing-data injectors.
 
 Every generator is a pure function of a PRNG key, so a Monte Carlo batch is
-``jax.vmap(partial(deformable_cube, ...))(jax.random.split(key, trials))``. The Bregler
-sequences and the injectors are jit-compiled, their sizes and dtype static: called op by op,
-a first call dispatched some 70 small programs, each compiled on its own (a Bregler sequence
-1.7-2.1 s, compiled as one 0.8 s). The cube is not (see `deformable_cube`).
+``jax.vmap(partial(deformable_cube, ...))(jax.random.split(key, trials))``. Each is
+jit-compiled, its sizes and dtype static: called op by op, a first call dispatched some 70
+small programs, each compiled on its own (the cube 1.5-2.0 s, a Bregler sequence 1.7-2.1 s;
+compiled as one, 0.7 and 0.8 s). Compiled, the generators' tracks differ from the op-by-op
+ones in the last bits (XLA fuses their arithmetic); the injectors' are the same to the bit.
 
 Cameras are orthographic with unit scale (``x_ij = R_i[:2] X_j + c_i``): world units are
 image units. A general affine camera admits no Euclidean upgrade, and under a per-frame
@@ -54,6 +55,7 @@ class SyntheticSequence(eqx.Module):
     """Standard deviation of the Gaussian noise on each coordinate."""
 
 
+@partial(jax.jit, static_argnames=("m", "dtype"))
 def random_rotations(key: PRNGKeyArray, m: int, dtype=None) -> Float[Array, "m 3 3"]:
     """``m`` rotations drawn uniformly from SO(3) (normalised Gaussian quaternions)."""
     q = jax.random.normal(key, (m, 4), dtype=dtype)
@@ -180,12 +182,7 @@ def _cube_geometry() -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([rigid, *discs], axis=1), modes
 
 
-# Not jit-compiled, although a first call would take 0.7 s instead of 1.5-2.0: compiled as
-# one program, the cube's tracks differ in their last bits (XLA fuses the arithmetic), and
-# the noise-free finite-difference check of `wang` in tests/test_gradients.py, whose step
-# (1e-3) was chosen on these tracks, then misses its tolerance: 2.1e-5 against 1e-5 (at a
-# step of 3e-4, 4e-8; on the op-by-op tracks 1.5e-7 at 1e-3 and 7e-5 at 3e-4). It needs
-# a step rule that does not rest on the tracks' last bits first.
+@partial(jax.jit, static_argnames=("n_frames", "dtype"))
 def deformable_cube(
     key: PRNGKeyArray,
     *,

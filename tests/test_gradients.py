@@ -128,17 +128,22 @@ def _huber_outputs(x, visible, truth, probe):
     return jnp.concatenate([_outputs(rec, truth, probe), loss[None]])
 
 
-@pytest.mark.parametrize(("noise", "h"), [(1.0, 1e-4), (0.0, 1e-3)])
-def test_wang_matches_finite_differences(noise, h):
+@pytest.mark.parametrize(("noise", "steps"), [(1.0, (1e-4,)), (0.0, (3e-4, 1e-3))])
+def test_wang_matches_finite_differences(noise, steps):
     # The default robust method, outliers present: its inlier set is a hard decision (a
     # constant to the gradient); step 5's weights are functions of the inliers'
     # least-squares fit and are differentiated. On noise-free tracks the forward solve
     # is only reproducible to ~1e-9 relative (the anchored outliers barely constrain ALS),
-    # so the difference step is larger there (1e-5 to 1e-3 relative agreement for steps
-    # 3e-4 down to 1e-5 there, below 1e-5 at 1e-3).
+    # so the difference step is larger there, and the window between that noise and the
+    # steps at which the inlier set changes (3e-3: errors up to order 1) is narrow and moves
+    # with the tracks' last bits: on three 12-frame cubes, each drawn op by op and compiled
+    # as one program (six sets of tracks), step 3e-4 agreed to 4e-8 - 7e-5 and 1e-3 to
+    # 1e-7 - 7e-5, one of the two below 1e-5 in all six (at most 3.5e-7). The derivative
+    # must agree with the difference quotient of one of the steps.
     seq, W, truth = _cube(noise, outliers=0.1)
     probe = jax.random.normal(jax.random.key(3), W.shape)
-    assert _check(_wang_outputs, W, (_visible(seq), truth, probe), [_direction(seq, W)], h) < 1e-5
+    args = (_visible(seq), truth, probe)
+    assert min(_check(_wang_outputs, W, args, [_direction(seq, W)], h) for h in steps) < 1e-5
 
 
 def _wang_outputs(W, visible, truth, probe):
