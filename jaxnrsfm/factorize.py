@@ -69,20 +69,24 @@ def _solve_batched(
     return jax.scipy.linalg.cho_solve((factor, True), rhs)
 
 
-def _structure(
+def structure_given_motion(
     weighted: Float[Array, "2m n"], weights: Float[Array, "m n"], M: Float[Array, "2m r"], damping: Float[Array, ""]
 ) -> Float[Array, "r n"]:
-    # S given M: each column of S is an independent r x r normal equation over its visible
-    # entries, one batched solve; ``damping`` adds that fraction of each equation's mean
-    # diagonal to its diagonal (a ridge). ``weighted``: the tracks times their weights.
+    """The weighted least-squares structure ``S`` given the motion ``M`` (half an ALS sweep).
+
+    ``weighted`` is the tracks times their ``weights`` (``(m, n)``, one per entry, shared by
+    its two coordinates). Each column of ``S`` is an independent ``r x r`` normal equation
+    over its weighted entries, one batched solve; ``damping`` adds that fraction of each
+    equation's mean diagonal to its diagonal (a ridge)."""
     G = grams(weights.T, symmetric_products(to_frames(M).transpose(1, 2, 0)))
     return _solve_batched(G, (weighted.T @ M)[..., None], damping)[..., 0].T
 
 
-def _motion(
+def motion_given_structure(
     weighted: Float[Array, "2m n"], weights: Float[Array, "m n"], S: Float[Array, "r n"], damping: Float[Array, ""]
 ) -> Float[Array, "2m r"]:
-    # M given S: the two rows of a frame share one r x r normal equation.
+    """The weighted least-squares motion ``M`` given the structure ``S``, as
+    `structure_given_motion`: the two rows of a frame share one ``r x r`` normal equation."""
     G = grams(weights, symmetric_products(S[None]))
     rhs = to_frames(weighted) @ S.T  # (m, 2, r)
     return _solve_batched(G, rhs.transpose(0, 2, 1), damping).transpose(0, 2, 1).reshape(-1, S.shape[0])
@@ -149,12 +153,12 @@ def masked_als(
     def body(state):
         M, S, c, _, step, beta = state
         damped, ridge = step < damped_steps, damping(step)
-        new = _motion(weighted, weights, S, ridge)
+        new = motion_given_structure(weighted, weights, S, ridge)
         # No extrapolation in a damped sweep (its fixed point is the ridge's, not the
         # cost's) nor from the start, whose cost is not yet known.
         plain = damped | (step == 0)
         far = new + jnp.where(plain, 0.0, beta) * (new - M)
-        S_far = _structure(weighted, weights, far, ridge)
+        S_far = structure_given_motion(weighted, weights, far, ridge)
         c_far = cost(far, S_far)
         keep = plain | (c_far < c)
 
@@ -162,7 +166,7 @@ def masked_als(
         # CPU runtime may run concurrently have deadlocked it (see `initial_fit`): the
         # ``0 * c`` terms order this solve after S_far's, and the QR below after it.
         def sweep(_):
-            S_new = _structure(weighted, weights, new + 0.0 * c_far, ridge)
+            S_new = structure_given_motion(weighted, weights, new + 0.0 * c_far, ridge)
             return new, S_new, cost(new, S_new)
 
         M, S, c_new = jax.lax.cond(keep, lambda _: (far, S_far, c_far), sweep, None)
@@ -175,7 +179,7 @@ def masked_als(
         # stalls at its own (ridge-biased) fixed point, which the undamped sweeps must leave.
         return Q, R @ S, c_new, jnp.where(damped, inf, c), step + 1, beta
 
-    S0 = _structure(weighted, weights, M0, damping(0))
+    S0 = structure_given_motion(weighted, weights, M0, damping(0))
     M, S, c, c_prev, steps, _ = jax.lax.while_loop(
         cond, body, (M0, S0, inf, inf, jnp.array(0), jnp.array(start, W.dtype))
     )

@@ -29,7 +29,15 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from . import residuals, temporal
-from .factorize import Factorization, _motion, _structure, finish, initial_fit, least_squares_fit, masked_als
+from .factorize import (
+    Factorization,
+    finish,
+    initial_fit,
+    least_squares_fit,
+    masked_als,
+    motion_given_structure,
+    structure_given_motion,
+)
 from .implicit import attach
 from .l1 import ke_kanade as ke_kanade_l1
 from .linalg import svd_factors
@@ -361,11 +369,11 @@ def row_column_check(
 
     def columns(_, S):
         weights = reweight(entry_errors(W, M @ S))
-        return _structure(row_mask(weights) * W, weights, M, 0.0)
+        return structure_given_motion(row_mask(weights) * W, weights, M, 0.0)
 
     def rows(_, motion):
         weights = reweight(entry_errors(W, motion @ S))
-        return _motion(row_mask(weights) * W, weights, S, 0.0)
+        return motion_given_structure(row_mask(weights) * W, weights, S, 0.0)
 
     S_robust = jax.lax.fori_loop(0, iterations, columns, S)
     M_robust = jax.lax.fori_loop(0, iterations, rows, M)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import jaxnrsfm as nr
-from jaxnrsfm.factorize import _motion, _structure
+from jaxnrsfm.factorize import motion_given_structure, structure_given_motion
 
 FORMS = ("augmented", "registered")
 PAPER = dict(method="direct", shapes="upgrade")
@@ -181,5 +181,5 @@ def test_als_half_sweeps_solve_their_weighted_normal_equations():
     columns = [np.linalg.solve((M.T * c[:, j]) @ M, M.T @ (c[:, j] * W[:, j])) for j in range(n)]
     # The solves add a relative ridge of 1e-12 (linalg.add_ridge).
     weighted = jnp.asarray(c) * W
-    np.testing.assert_allclose(_motion(weighted, weights, S, 0.0), np.stack(rows), atol=1e-9)
-    np.testing.assert_allclose(_structure(weighted, weights, M, 0.0), np.stack(columns, axis=1), atol=1e-9)
+    np.testing.assert_allclose(motion_given_structure(weighted, weights, S, 0.0), np.stack(rows), atol=1e-9)
+    np.testing.assert_allclose(structure_given_motion(weighted, weights, M, 0.0), np.stack(columns, axis=1), atol=1e-9)
