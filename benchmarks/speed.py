@@ -14,7 +14,13 @@ library, loop / library, vmap / loop (both strategies of (a), compiled alike), a
 library's time per trial in NumPy SVDs of the same tracking matrix; and checks that (a)
 and (c) agree.
 
-    python benchmarks/speed.py [--trials 100] [--numpy-trials 100]
+``--cores N`` runs the whole benchmark, the library and NumPy alike, on the first N cores
+the process may use (default: all). On the 2-core machine this project is developed on, a
+process on one core ran a trial in 210-216 ms where the same process on both took 322-454
+ms (NumPy's SVD: 10.9 and 14.7 ms): its two cores contend, and XLA's thread-pool flags did
+not change that, only the affinity did.
+
+    python benchmarks/speed.py [--trials 100] [--numpy-trials 100] [--cores N]
 """
 
 import argparse
@@ -23,7 +29,25 @@ import os
 import sys
 import time
 
-import jax
+
+def parse():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--trials", type=int, default=100)
+    parser.add_argument("--numpy-trials", type=int, default=None, help="trials for (c); default: all")
+    parser.add_argument("--noise", type=float, default=2.0)
+    parser.add_argument("--outliers", type=float, default=0.1)
+    parser.add_argument("--cores", type=int, default=None, help="run on this many cores; default: all")
+    return parser.parse_args()
+
+
+if __name__ == "__main__":
+    ARGS = parse()
+    if ARGS.cores is not None:
+        # Before JAX and NumPy's BLAS start: they size their thread pools by the cores the
+        # process may run on.
+        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[: ARGS.cores])
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
@@ -52,7 +76,8 @@ def main(args) -> None:
     T = args.trials
     print(
         f"wang on the cube ({W.shape[1] // 2} frames x {W.shape[2]} points, k={K}), sigma={args.noise}, "
-        f"{args.outliers:.0%} outliers, {T} trials; {len(jax.devices())} {jax.devices()[0].platform} device(s)"
+        f"{args.outliers:.0%} outliers, {T} trials; {len(jax.devices())} {jax.devices()[0].platform} device(s), "
+        f"{len(os.sched_getaffinity(0))} core(s)"
     )
 
     def library(strategy, **options):
@@ -102,14 +127,5 @@ def main(args) -> None:
     print(f"(library = reconstruct_batch's default strategy, {default[4:]})")
 
 
-def parse():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--trials", type=int, default=100)
-    parser.add_argument("--numpy-trials", type=int, default=None, help="trials for (c); default: all")
-    parser.add_argument("--noise", type=float, default=2.0)
-    parser.add_argument("--outliers", type=float, default=0.1)
-    return parser.parse_args()
-
-
 if __name__ == "__main__":
-    main(parse())
+    main(ARGS)
