@@ -61,7 +61,11 @@ def _truncated_svd_jvp(rank, primals, tangents):
 def svd_factors(A: Float[Array, "p q"], rank: int) -> tuple[Float[Array, "p r"], Float[Array, "r q"]]:
     """Best rank-``rank`` factors of a complete matrix, balanced as ``U sqrt(s)``, ``sqrt(s) V^T``
     (differentiable wherever ``s_rank > s_rank+1``, `truncated_svd`)."""
-    U, s, Vt = truncated_svd(A, rank)
+    return _balanced(*truncated_svd(A, rank))
+
+
+def _balanced(U, s, Vt):
+    # The factors U sqrt(s), sqrt(s) V^T of an SVD, shared by both ways of computing it.
     root = jnp.sqrt(s)
     return U * root, root[:, None] * Vt
 
@@ -78,8 +82,7 @@ def product_factors(M: Float[Array, "p r"], S: Float[Array, "r q"]) -> tuple[Flo
     Qm, Rm = jnp.linalg.qr(M)
     Qs, Rs = jnp.linalg.qr(S.T + 0.0 * Qm[0, 0])
     u, s, vt = jnp.linalg.svd(Rm @ Rs.T + 0.0 * Qs[0, 0])
-    root = jnp.sqrt(s)
-    return (Qm @ u) * root, root[:, None] * (vt @ Qs.T)
+    return _balanced(Qm @ u, s, vt @ Qs.T)
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(1,))

@@ -1,6 +1,7 @@
 """Error measures: reprojection errors, the statistical floor, e3D and outlier detection.
 
-All are pure functions of arrays (jit- and vmap-friendly), and the measures are
+All are pure functions of arrays (jit- and vmap-friendly). ``e3d``, ``align_shapes``,
+``rms_error``, ``mean_reprojection_error`` and ``outlier_precision_recall`` are
 jit-compiled: called op by op, ``e3d`` and ``rms_error`` dispatched 27 small programs
 on a first call, each compiled on its own. A "reprojection error" of an
 entry is the Euclidean length of its 2-vector residual ``|e_ij|`` (the paper's eq. 16);
