@@ -16,10 +16,9 @@ and (c) agree.
 
 ``--cores N`` runs the whole benchmark, the library and NumPy alike, on the first N cores
 the process may use (default: all). On the 2-core machine this project is developed on, a
-process on one core ran a trial in 210-216 ms where the same process on both took 322-454
-ms, and half an hour later 215-288 against 262-304 ms (README, "Speed", run 10): its two
-cores contend, by how much varies, and XLA's thread-pool flags did not change it, only the
-affinity did.
+process on one core ran a trial 1.1-2x faster than on both (README, "Speed", run 10): OpenBLAS,
+which runs XLA:CPU's LAPACK calls, split each over both cores. The library now runs them on
+one thread (`jaxnrsfm.threads`), and both ways take about as long (run 11).
 
     python benchmarks/speed.py [--trials 100] [--numpy-trials 100] [--cores N]
 """

@@ -28,6 +28,7 @@ from .stages import (
     ShapeStep,
 )
 from .status import Status
+from .threads import single_threaded_lapack
 from .tracks import centred_spread, from_frames, prepare_tracks, row_mask, to_frames
 from .upgrade import Euclidean, metric_upgrade, split_translation
 
@@ -381,4 +382,8 @@ def reconstruct(
     stages = resolve_stages(method, rotations, shapes, solver, form)
     check_stages(stages, vis.shape, k)
     complete = not isinstance(vis, jax.core.Tracer) and bool(vis.all())
-    return _compiled_for_one_call(W0, vis, stages)(W0, vis, k=k, complete=complete, **stages)
+    run = _compiled_for_one_call(W0, vis, stages)
+    if run is reconstruct_prepared:  # part of a larger computation, or on an accelerator
+        return run(W0, vis, k=k, complete=complete, **stages)
+    with single_threaded_lapack():
+        return jax.block_until_ready(run(W0, vis, k=k, complete=complete, **stages))
