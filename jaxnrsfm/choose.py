@@ -37,6 +37,7 @@ true k = 4, the raw one 12 (the cube's deformation modes are weak against the no
 import numpy as np
 from jaxtyping import ArrayLike
 
+from .threads import single_threaded_lapack
 from .tracks import prepare_tracks
 
 RPCA_STEPS = 300
@@ -52,15 +53,16 @@ def robust_low_rank(W: np.ndarray, visible: np.ndarray, *, steps: int = RPCA_STE
     lam = 1.0 / np.sqrt(max(W.shape))
     mu = 1.25 / max(np.linalg.norm(W, 2), np.finfo(float).tiny)
     E, Y = np.zeros_like(W), np.zeros_like(W)
-    for _ in range(steps):
-        U, s, Vt = np.linalg.svd(W - E + Y / mu, full_matrices=False)
-        L = (U * np.maximum(s - 1 / mu, 0.0)) @ Vt
-        X = W - L + Y / mu
-        length = np.sqrt(X[0::2] ** 2 + X[1::2] ** 2)
-        shrink = np.maximum(1 - (lam / mu) / np.maximum(length, np.finfo(float).tiny), 0.0)
-        E = np.where(mask, X * np.repeat(shrink, 2, axis=0), X)
-        Y = Y + mu * np.where(mask, W - L - E, 0.0)
-        mu = min(1.5 * mu, 1e10)
+    with single_threaded_lapack(host=True):  # 300 SVDs of a thin matrix: see jaxnrsfm.threads
+        for _ in range(steps):
+            U, s, Vt = np.linalg.svd(W - E + Y / mu, full_matrices=False)
+            L = (U * np.maximum(s - 1 / mu, 0.0)) @ Vt
+            X = W - L + Y / mu
+            length = np.sqrt(X[0::2] ** 2 + X[1::2] ** 2)
+            shrink = np.maximum(1 - (lam / mu) / np.maximum(length, np.finfo(float).tiny), 0.0)
+            E = np.where(mask, X * np.repeat(shrink, 2, axis=0), X)
+            Y = Y + mu * np.where(mask, W - L - E, 0.0)
+            mu = min(1.5 * mu, 1e10)
     return L
 
 

@@ -9,8 +9,11 @@ cube trials of ``wang`` through `jaxnrsfm.reconstruct_batch`, the code before an
 alternating (five pairs of runs, best of three repetitions each): 276-430 ms a trial
 before, 202-280 ms after, 13-36% less in every pair; the same results to round-off (the
 trials' summed e3D equal to 11 digits). A process on both cores now runs a trial about as
-fast as one pinned to a single core, which before was 1.1-2x faster. Only the threads
-change: the limit is set for the call and restored after it, and applies to every BLAS
+fast as one pinned to a single core, which before was 1.1-2x faster. NumPy's own calls in
+`jaxnrsfm.choose_k`'s robust PCA (300 SVDs of the tracks) run under the limit too: on an
+idle machine it changes nothing (drink 1.3-1.7 s either way), beside another process on the
+other core it is what keeps them fast (drink 3.5 -> 1.4 s, dance 5.9-11.9 -> 1.5 s). Only
+the threads change: the limit is set for the call and restored after it, and applies to every BLAS
 library of the process (NumPy's too) meanwhile.
 """
 
@@ -30,10 +33,11 @@ def _controller() -> ThreadpoolController:
 
 
 @contextlib.contextmanager
-def single_threaded_lapack() -> Iterator[None]:
-    """Within the block, BLAS and LAPACK run on one thread (on a CPU backend; elsewhere
-    nothing changes). JAX dispatches asynchronously: block on the results inside it."""
-    if jax.default_backend() != "cpu":
+def single_threaded_lapack(host: bool = False) -> Iterator[None]:
+    """Within the block, BLAS and LAPACK run on one thread: on a CPU backend, or for
+    NumPy's own calls on the host (``host``) on any. JAX dispatches asynchronously: block
+    on the results inside it."""
+    if not host and jax.default_backend() != "cpu":
         yield
         return
     with _controller().limit(limits=1, user_api="blas"):
