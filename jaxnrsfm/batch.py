@@ -90,8 +90,17 @@ def reconstruct_batch(
         return jax.block_until_ready(_run(strategy, W0, vis, dynamic, static, trials, batch_size, statics))
 
 
-def _run(strategy, W0, vis, dynamic, static, trials, batch_size, statics) -> Reconstruction:
-    # The trials by the strategy (module docstring).
+def _run(
+    strategy: str,
+    W0: Float[Array, "T 2m n"],
+    vis: Bool[Array, "T m n"],
+    dynamic: dict,
+    static: dict,
+    trials: int,
+    batch_size: int | None,
+    statics: dict,
+) -> Reconstruction:
+    # The trials by the strategy (module docstring); dispatched, not yet computed.
     if strategy == "loop":
         results = [
             reconstruct_prepared(
