@@ -28,7 +28,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .pipeline import Reconstruction, check_stages, reconstruct_prepared, resolve_stages
 from .stages import MaskedALS, OutlierStrategy, RotationRecovery, ShapeStep
-from .threads import single_threaded_lapack
+from .threads import compute_single_threaded
 from .tracks import prepare_tracks
 
 STRATEGIES = ("map", "vmap", "loop")
@@ -86,8 +86,7 @@ def reconstruct_batch(
     check_stages(eqx.combine(jax.tree.map(lambda x: x[0], dynamic), static), vis.shape[1:], k)
     complete = bool(vis.all())
     statics = dict(k=k, complete=complete)
-    with single_threaded_lapack():
-        return jax.block_until_ready(_run(strategy, W0, vis, dynamic, static, trials, batch_size, statics))
+    return compute_single_threaded(_run, strategy, W0, vis, dynamic, static, trials, batch_size, statics)
 
 
 def _run(

@@ -28,7 +28,7 @@ from .stages import (
     ShapeStep,
 )
 from .status import Status
-from .threads import single_threaded_lapack
+from .threads import compute_single_threaded
 from .tracks import centred_spread, from_frames, prepare_tracks, row_mask, to_frames
 from .upgrade import Euclidean, metric_upgrade, split_translation
 
@@ -385,5 +385,4 @@ def reconstruct(
     run = _compiled_for_one_call(W0, vis, stages)
     if run is reconstruct_prepared:  # part of a larger computation, or on an accelerator
         return run(W0, vis, k=k, complete=complete, **stages)
-    with single_threaded_lapack():
-        return jax.block_until_ready(run(W0, vis, k=k, complete=complete, **stages))
+    return compute_single_threaded(run, W0, vis, k=k, complete=complete, **stages)

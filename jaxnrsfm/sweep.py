@@ -27,7 +27,7 @@ from .pipeline import reconstruct_prepared
 from .stages import STRATEGIES, MaskedALS, Oracle, UpgradeRotations, UpgradeShapes
 from .status import Status
 from .synthetic import deformable_cube
-from .threads import single_threaded_lapack
+from .threads import compute_single_threaded
 
 PAPER_METHODS = ("direct", "huynh", "ke_kanade", "wang", "oracle")
 K = 4
@@ -148,8 +148,7 @@ def run_sweep(
                     mesh=mesh,
                 )
                 t0 = time.perf_counter()
-                with single_threaded_lapack():
-                    out = jax.block_until_ready(run(keys, jnp.asarray(noise), jnp.asarray(ratio)))
+                out = compute_single_threaded(run, keys, jnp.asarray(noise), jnp.asarray(ratio))
                 elapsed = time.perf_counter() - t0
                 error, precision, recall, ok = (_gather(x).reshape(-1)[: settings.trials] for x in out)
                 cells.append(

@@ -19,11 +19,14 @@ library of the process (NumPy's too) meanwhile.
 
 import contextlib
 import functools
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import TypeVar
 
 import jax
 import scipy.linalg.cython_lapack  # noqa: F401 -- loads the OpenBLAS that jaxlib's LAPACK kernels call
 from threadpoolctl import ThreadpoolController
+
+T = TypeVar("T")
 
 
 @functools.cache
@@ -42,3 +45,10 @@ def single_threaded_lapack(host: bool = False) -> Iterator[None]:
         return
     with _controller().limit(limits=1, user_api="blas"):
         yield
+
+
+def compute_single_threaded(fn: Callable[..., T], *args, **kwargs) -> T:
+    """``fn(*args, **kwargs)`` computed to the end (blocked on) within
+    `single_threaded_lapack`: how the library runs its compiled programs on concrete arrays."""
+    with single_threaded_lapack():
+        return jax.block_until_ready(fn(*args, **kwargs))

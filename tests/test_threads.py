@@ -4,7 +4,7 @@ import jax
 import pytest
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from jaxnrsfm.threads import single_threaded_lapack
+from jaxnrsfm.threads import compute_single_threaded, single_threaded_lapack
 
 
 def _threads() -> dict[str, int]:
@@ -22,4 +22,7 @@ def test_one_thread_inside_and_the_caller_limit_after():
         assert set(before.values()) == {2}
         with single_threaded_lapack():
             assert set(_threads().values()) == {1}
+        assert _threads() == before
+        # What the library's calls use: the function runs under the limit, and its result comes back.
+        assert set(compute_single_threaded(_threads).values()) == {1}
         assert _threads() == before
