@@ -576,11 +576,16 @@ def sweep(
     seed: Annotated[int, typer.Option(help="PRNG seed; trial t uses fold_in(key(seed), t).")] = 0,
     out: Annotated[Path, typer.Option(help="Folder for sweep.json and the figures (created if absent).")] = Path("."),
     float32: Annotated[bool, typer.Option("--float32", help="Compute in float32 instead of float64.")] = False,
+    processes: Annotated[
+        int, typer.Option(help="Processes on this machine sharing the trials, each on its own cores (a CPU).")
+    ] = 1,
 ) -> None:
     """The paper's Fig. 5 protocol on the deformable cube (by default: sigma 1..5, 5% and
     20% outliers, 100 trials, five methods). Writes sweep.json (every trial's error,
     detection and status, the settings and timings), fig5.png and fig1.png. Trials are
-    split across all JAX devices."""
+    split across all JAX devices, or with --processes N across N processes, each on its
+    share of the cores (faster on a CPU where running the trials takes longer than
+    compiling them)."""
     from .sweep import PAPER_METHODS, SweepSettings
 
     defaults = SweepSettings()
@@ -589,7 +594,7 @@ def sweep(
     methods = list(methods or PAPER_METHODS)
     _setup(float32)
     try:
-        _check_sweep(noise, outliers, missing, trials, methods, k, frames, out)
+        _check_sweep(noise, outliers, missing, trials, methods, k, frames, out, processes)
     except ValueError as err:
         _fail(err)
     import jax
@@ -599,14 +604,23 @@ def sweep(
     from .metrics import entry_errors
     from .pipeline import reconstruct as reconstruct_tracks
     from .plot import plot_residuals, plot_sweep
+    from .processes import run_sweep_in_processes
     from .sweep import run_sweep
     from .synthetic import deformable_cube
 
     settings = SweepSettings(tuple(noise), tuple(outliers), missing, trials, frames, tuple(methods), k, seed)
     cells = len(noise) * len(outliers) * len(methods)
-    with Progress(console=Console(stderr=True)) as bar:
-        task = bar.add_task(f"sweep on {len(jax.devices())} device(s)", total=cells)
-        result = run_sweep(settings, progress=lambda line: bar.update(task, advance=1, description=line))
+    if processes > 1:
+        with Console(stderr=True).status(f"sweep in {processes} processes ({cells} cells)"):
+            try:
+                result = run_sweep_in_processes(settings, processes)
+            except RuntimeError as err:
+                typer.echo(f"error: {err}", err=True)
+                raise typer.Exit(1) from err
+    else:
+        with Progress(console=Console(stderr=True)) as bar:
+            task = bar.add_task(f"sweep on {len(jax.devices())} device(s)", total=cells)
+            result = run_sweep(settings, progress=lambda line: bar.update(task, advance=1, description=line))
     (out / "sweep.json").write_text(json.dumps(result, indent=1))
     plot_sweep(result, out / "fig5.png")
     # Fig. 1: one trial at the middle noise level and the largest outlier ratio.
@@ -641,9 +655,11 @@ def sweep(
     console.print(f"wrote {out / 'sweep.json'}, {out / 'fig5.png'}, {out / 'fig1.png'}")
 
 
-def _check_sweep(noise, outliers, missing, trials, methods, k, frames, out) -> None:
+def _check_sweep(noise, outliers, missing, trials, methods, k, frames, out, processes) -> None:
     from .stages import STRATEGIES
 
+    if processes < 1:
+        raise ValueError(f"--processes must be >= 1; got {processes}")
     if unknown := [m for m in methods if m not in STRATEGIES]:
         raise ValueError(f"unknown method {unknown[0]!r}; choose from {', '.join(STRATEGIES)}")
     if trials < 1 or k < 1 or frames < 2 or not noise or not outliers:

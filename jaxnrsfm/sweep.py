@@ -46,10 +46,17 @@ class SweepSettings:
     seed: int = 0
 
 
-def trial_keys(seed: int, trials: int) -> jax.Array:
-    """Trial ``t``'s key is ``fold_in(key(seed), t)``: independent of how many trials run
-    and of how they are split across devices."""
-    return jax.vmap(jax.random.fold_in, (None, 0))(jax.random.key(seed), jnp.arange(trials))
+def trial_keys(seed: int, trials: int, first: int = 0) -> jax.Array:
+    """The keys of trials ``first .. first + trials - 1``: trial ``t``'s is
+    ``fold_in(key(seed), t)``, independent of how many trials run and of how they are split
+    across devices or processes."""
+    return jax.vmap(jax.random.fold_in, (None, 0))(jax.random.key(seed), jnp.arange(first, first + trials))
+
+
+def check_methods(settings: SweepSettings) -> None:
+    """A ``ValueError`` naming the first of ``settings.methods`` that is not a method."""
+    if unknown := [m for m in settings.methods if m not in STRATEGIES]:
+        raise ValueError(f"unknown method {unknown[0]!r}; choose from {', '.join(STRATEGIES)}")
 
 
 def _evaluate(seq, *, k, method, solver):
@@ -118,22 +125,23 @@ def run_sweep(
     solver: MaskedALS | None = None,
     devices: Sequence[jax.Device] | None = None,
     progress: Callable[[str], None] | None = None,
+    first_trial: int = 0,
 ) -> dict:
-    """Run every (outlier ratio, noise, method) cell of ``settings``; return a
+    """Run every (outlier ratio, noise, method) cell of ``settings`` (its trials numbered
+    from ``first_trial``: a share of a larger sweep, `jaxnrsfm.processes`); return a
     JSON-ready dict with the settings, and per cell the per-trial errors, precision,
     recall, status and the wall time (compilation included, reported apart). Each method
     runs by its name with its default options (``jaxnrsfm.stages.STRATEGIES``; the oracle
     told each trial's outliers) and the missing-data ``solver`` (default
     ``MaskedALS()``). The protocol scores the 2-D fit, which the rotation and shape steps
     do not change: the paper's pipeline (`jaxnrsfm.stages.UpgradeShapes`) runs."""
-    if unknown := [m for m in settings.methods if m not in STRATEGIES]:
-        raise ValueError(f"unknown method {unknown[0]!r}; choose from {', '.join(STRATEGIES)}")
+    check_methods(settings)
     solver = MaskedALS() if solver is None else solver
     devices = list(jax.devices() if devices is None else devices)
     mesh = Mesh(np.array(devices), ("trials",))
     # Pad the trial axis to a multiple of the device count; the padding is dropped.
     padded = -(-settings.trials // len(devices)) * len(devices)
-    keys = trial_keys(settings.seed, padded).reshape(len(devices), -1)
+    keys = trial_keys(settings.seed, padded, first_trial).reshape(len(devices), -1)
     cells = []
     for ratio in settings.outliers:
         for noise in settings.noise:

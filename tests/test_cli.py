@@ -274,6 +274,8 @@ def test_sweep_from_noise_free_creates_folder(tmp_path):
 def test_sweep_rejects_bad_options(tmp_path):
     result = CliRunner().invoke(app, ["sweep", "--method", "magic", "--out", str(tmp_path)])
     assert result.exit_code == 1 and "unknown method 'magic'" in result.output and "Traceback" not in result.output
+    result = CliRunner().invoke(app, ["sweep", "--processes", "0", "--out", str(tmp_path)])
+    assert result.exit_code == 1 and "--processes must be >= 1" in result.output and "Traceback" not in result.output
 
 
 @pytest.mark.parametrize("command", ["demo", "reconstruct", "sweep"])

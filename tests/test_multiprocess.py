@@ -1,7 +1,8 @@
-"""A sweep run as two ``jax.distributed`` processes on one machine gives one process's numbers.
+"""A sweep run as two processes on one machine gives one process's numbers: as two
+``jax.distributed`` processes, and as `jaxnrsfm.processes`' independent ones.
 
-This is the README's several-hosts recipe with both "hosts" on 127.0.0.1: each process owns
-one CPU device, runs the trials of its device, and gathers the other's.
+The first is the README's several-hosts recipe with both "hosts" on 127.0.0.1: each process
+owns one CPU device, runs the trials of its device, and gathers the other's.
 """
 
 import json
@@ -10,6 +11,10 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
+
+from jaxnrsfm.processes import run_sweep_in_processes
+from jaxnrsfm.sweep import SweepSettings, run_sweep
 
 SCRIPT = """
 import json, sys
@@ -70,3 +75,19 @@ def test_two_processes_match_one(tmp_path):
             assert a["method"] == b["method"] and len(b["error"]) == 5
             np.testing.assert_allclose(b["error"], a["error"], rtol=1e-9)
             assert b["success"] == a["success"]
+
+
+def test_processes_on_this_machine_match_one():
+    # jaxnrsfm.processes: independent processes, each on a share of the trials (5 -> 2 + 3),
+    # joined in trial order: one process's numbers, every cell in the same order.
+    settings = SweepSettings(noise=(1.0,), outliers=(0.1, 0.2), trials=5, frames=12, methods=("direct",))
+    one, split = run_sweep(settings), run_sweep_in_processes(settings, 2)
+    assert split["devices"] == ["process 0: cpu:0", "process 1: cpu:0"]
+    assert split["settings"] == one["settings"] and split["floor"] == one["floor"]
+    for a, b in zip(one["cells"], split["cells"], strict=True):
+        assert (b["outliers"], b["method"], b["success"]) == (a["outliers"], a["method"], a["success"])
+        np.testing.assert_allclose(b["error"], a["error"], rtol=1e-9)
+    with pytest.raises(ValueError, match="unknown method 'magic'"):  # before any process starts
+        run_sweep_in_processes(SweepSettings(methods=("magic",)), 2)
+    with pytest.raises(ValueError, match="processes must be >= 1"):
+        run_sweep_in_processes(settings, 0)
