@@ -656,12 +656,11 @@ def sweep(
 
 
 def _check_sweep(noise, outliers, missing, trials, methods, k, frames, out, processes) -> None:
-    from .stages import STRATEGIES
+    from .sweep import check_methods
 
     if processes < 1:
         raise ValueError(f"--processes must be >= 1; got {processes}")
-    if unknown := [m for m in methods if m not in STRATEGIES]:
-        raise ValueError(f"unknown method {unknown[0]!r}; choose from {', '.join(STRATEGIES)}")
+    check_methods(methods)
     if trials < 1 or k < 1 or frames < 2 or not noise or not outliers:
         raise ValueError("trials, k must be >= 1, frames >= 2, and at least one noise level and outlier ratio given")
     if any(s < 0 for s in noise) or any(not 0 <= r < 1 for r in outliers) or not 0 <= missing < 1:

@@ -35,7 +35,7 @@ def run_sweep_in_processes(settings: SweepSettings, processes: int) -> dict:
     ``RuntimeError`` with the end of its output."""
     if processes < 1:
         raise ValueError(f"processes must be >= 1; got {processes}")
-    check_methods(settings)  # here, not in every process after its start
+    check_methods(settings.methods)  # here, not in every process after its start
     processes = min(processes, settings.trials)
     starts = [i * settings.trials // processes for i in range(processes + 1)]
     cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []

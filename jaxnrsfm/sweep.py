@@ -53,9 +53,9 @@ def trial_keys(seed: int, trials: int, first: int = 0) -> jax.Array:
     return jax.vmap(jax.random.fold_in, (None, 0))(jax.random.key(seed), jnp.arange(first, first + trials))
 
 
-def check_methods(settings: SweepSettings) -> None:
-    """A ``ValueError`` naming the first of ``settings.methods`` that is not a method."""
-    if unknown := [m for m in settings.methods if m not in STRATEGIES]:
+def check_methods(methods: Sequence[str]) -> None:
+    """A ``ValueError`` naming the first of ``methods`` that is not a method's name."""
+    if unknown := [m for m in methods if m not in STRATEGIES]:
         raise ValueError(f"unknown method {unknown[0]!r}; choose from {', '.join(STRATEGIES)}")
 
 
@@ -135,7 +135,7 @@ def run_sweep(
     told each trial's outliers) and the missing-data ``solver`` (default
     ``MaskedALS()``). The protocol scores the 2-D fit, which the rotation and shape steps
     do not change: the paper's pipeline (`jaxnrsfm.stages.UpgradeShapes`) runs."""
-    check_methods(settings)
+    check_methods(settings.methods)
     solver = MaskedALS() if solver is None else solver
     devices = list(jax.devices() if devices is None else devices)
     mesh = Mesh(np.array(devices), ("trials",))
