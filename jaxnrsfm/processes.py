@@ -18,6 +18,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import jax
@@ -54,16 +55,25 @@ def run_sweep_in_processes(settings: SweepSettings, processes: int) -> dict:
             log = open(Path(folder) / f"{i}.log", "w")  # noqa: SIM115 -- closed when the process ends
             command = [sys.executable, "-c", _CHILD, str(spec), str(Path(folder) / f"{i}.out.json")]
             jobs.append((subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT), log))
-        for i, (job, log) in enumerate(jobs):
-            code = job.wait()
+        # Whichever ends first is seen first: a process that fails at its start stops the
+        # others then, not after they have run their shares.
+        running = set(range(processes))
+        while running:
+            time.sleep(0.1)
+            for i in sorted(running):
+                code = jobs[i][0].poll()
+                if code is None:
+                    continue
+                running.discard(i)
+                if code:
+                    for job, log in jobs:
+                        job.kill()
+                        job.wait()
+                        log.close()
+                    output = (Path(folder) / f"{i}.log").read_text()[-3000:]
+                    raise RuntimeError(f"sweep process {i} of {processes} failed (exit status {code}):\n{output}")
+        for _, log in jobs:
             log.close()
-            if code:
-                for other, other_log in jobs:
-                    other.kill()
-                    other.wait()
-                    other_log.close()
-                output = (Path(folder) / f"{i}.log").read_text()[-3000:]
-                raise RuntimeError(f"sweep process {i} of {processes} failed (exit status {code}):\n{output}")
         parts = [json.loads((Path(folder) / f"{i}.out.json").read_text()) for i in range(processes)]
     return _join(parts, settings)
 
