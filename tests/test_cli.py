@@ -243,32 +243,31 @@ def test_reconstruct_bad_input_is_one_line(tmp_path, case):
 
 
 def test_sweep_writes_json_and_figures(tmp_path):
-    args = ["sweep", "--trials", "2", "--frames", "20", "--noise", "1", "--noise", "3", "--outliers", "0.1"]
-    result = CliRunner().invoke(app, [*args, "--method", "direct", "--method", "oracle", "--out", str(tmp_path)])
+    # One sweep for every check (each method compiles once): from sigma = 0, as many papers'
+    # sweeps start, into a folder it creates. 40 frames: at 20 the cube's passes settle on a
+    # wrong consensus at sigma = 0 (README, "Known limitations").
+    out = tmp_path / "new" / "dir"
+    args = ["sweep", "--trials", "2", "--frames", "40", "--outliers", "0.1", "--out", str(out)]
+    for sigma in ("0", "1", "3"):
+        args += ["--noise", sigma]
+    for method in ("direct", "wang", "oracle"):
+        args += ["--method", method]
+    result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
-    sweep = json.loads((tmp_path / "sweep.json").read_text())
-    assert len(sweep["cells"]) == 4 and all(len(c["error"]) == 2 for c in sweep["cells"])
-    errors = {(c["method"], c["noise"]): np.mean(c["error"]) for c in sweep["cells"]}
+    sweep = json.loads((out / "sweep.json").read_text())
+    assert len(sweep["cells"]) == 9 and all(len(c["error"]) == 2 for c in sweep["cells"])
+    cells = {(c["method"], c["noise"]): c for c in sweep["cells"]}
+    errors = {key: np.mean(c["error"]) for key, c in cells.items()}
     # The oracle sits near the statistical floor; ignoring the outliers costs far more.
     for sigma in (1, 3):
         assert errors["oracle", sigma] < 1.5 * sweep["floor"][str(float(sigma))] < errors["direct", sigma]
-    assert (tmp_path / "fig5.png").stat().st_size > 0 and (tmp_path / "fig1.png").stat().st_size > 0
-
-
-def test_sweep_from_noise_free_creates_folder(tmp_path):
-    # A sweep that starts at sigma = 0, as many papers' do, runs, creates its folder and
-    # finds every outlier there: the robust method is exact (to the sqrt(eps) weight its
-    # fit keeps on the rejected entries), as the oracle is. 40 frames: at 20 the cube's
-    # passes settle on a wrong consensus (README, "Known limitations").
-    out = tmp_path / "new" / "dir"
-    args = ["sweep", "--trials", "2", "--frames", "40", "--noise", "0", "--noise", "1", "--outliers", "0.1"]
-    result = CliRunner().invoke(app, [*args, "--method", "wang", "--method", "oracle", "--out", str(out)])
-    assert result.exit_code == 0, result.output
-    cells = {(c["method"], c["noise"]): c for c in json.loads((out / "sweep.json").read_text())["cells"]}
+    # Noise-free, the robust method finds every outlier and is exact (to the sqrt(eps)
+    # weight its fit keeps on the rejected entries), as the oracle is.
     assert max(cells["oracle", 0.0]["error"]) < 1e-9
     assert max(cells["wang", 0.0]["error"]) < 1e-6
     assert min(cells["wang", 0.0]["precision"]) == min(cells["wang", 0.0]["recall"]) == 1.0
-    assert np.mean(cells["wang", 1.0]["error"]) < 1.05 * np.mean(cells["oracle", 1.0]["error"])
+    assert errors["wang", 1.0] < 1.05 * errors["oracle", 1.0]
+    assert (out / "fig5.png").stat().st_size > 0 and (out / "fig1.png").stat().st_size > 0
 
 
 def test_sweep_rejects_bad_options(tmp_path):

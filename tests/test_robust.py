@@ -215,7 +215,7 @@ def _assert_exact_with_outliers(seq, rec) -> None:
 
 
 @pytest.mark.parametrize("noise", [0.0, 1e-6])
-@pytest.mark.parametrize("make", [*EXACT_BREGLER, pytest.param(partial(nr.deformable_cube, n_frames=60), id="cube-k4")])
+@pytest.mark.parametrize("make", [*EXACT_BREGLER, pytest.param(partial(nr.deformable_cube, n_frames=40), id="cube-k4")])
 def test_wang_on_exact_tracks(make, noise):
     # Exact (or nearly exact) tracks: the residual scale is floored at the tracks'
     # precision (residuals.scale_floor), so round-off is not taken for outliers, and the
