@@ -3,16 +3,25 @@ paper's cube, the baselines' ordering, the Huber/L1 solver, statuses and option 
 
 from functools import partial
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
+import optimistix as optx
 import pytest
 
 import jaxnrsfm as nr
 from jaxnrsfm import residuals, robust
 from jaxnrsfm.factorize import svd_factors
-from jaxnrsfm.objective import _block_inverse, huber_loss, huber_residuals, robust_factorize
+from jaxnrsfm.objective import (
+    STALL_STEPS,
+    StallingLevenbergMarquardt,
+    _block_inverse,
+    huber_loss,
+    huber_residuals,
+    robust_factorize,
+)
 
 
 @pytest.mark.parametrize(
@@ -150,6 +159,23 @@ def test_huber_with_huge_delta_is_least_squares():
     assert ok
     best = jnp.sum((W - M @ S) ** 2)
     np.testing.assert_allclose(jnp.sum((W - M1 @ S1) ** 2), best, rtol=1e-6)
+
+
+def test_levenberg_marquardt_stops_after_rejected_steps():
+    # optimistix tests convergence only on an accepted step; at a minimum that the inexact
+    # CG steps cannot improve on, every step is rejected (objective.StallingLevenbergMarquardt).
+    # The robust solver's then stops after STALL_STEPS of them; optimistix's would not.
+    def fn(y, _):
+        return y - 1.0, None
+
+    y = jnp.zeros(2)
+    ours, plain = StallingLevenbergMarquardt(rtol=1e-8, atol=1e-8), optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8)
+    state = ours.init(fn, y, None, {}, jax.ShapeDtypeStruct(y.shape, y.dtype), None, frozenset())
+    for rejected, stop in ((STALL_STEPS - 1, False), (STALL_STEPS, True)):
+        stalled = eqx.tree_at(lambda s: s.num_steps_since_acceptance, state, jnp.array(rejected))
+        terminate, result = ours.terminate(fn, y, None, {}, stalled, frozenset())
+        assert bool(terminate) == stop and result == optx.RESULTS.successful
+        assert not bool(plain.terminate(fn, y, None, {}, stalled, frozenset())[0])
 
 
 @pytest.mark.parametrize("method", ["huber", "l1"])
