@@ -42,7 +42,7 @@ def main():
     )
     print(f"deformable cube, {settings.frames} frames x 252 points, k={settings.k}, {args.trials} trials per setting")
     print("mean over trials of the RMS error on true inliers against the noise-free tracks [image units]")
-    if args.processes > 1:
+    if args.processes != 1:  # run_sweep_in_processes rejects a count below 1
         result = run_sweep_in_processes(settings, args.processes)
     else:
         result = run_sweep(settings, progress=lambda line: print("  done:", line, flush=True))

@@ -55,25 +55,27 @@ def run_sweep_in_processes(settings: SweepSettings, processes: int) -> dict:
             log = open(Path(folder) / f"{i}.log", "w")  # noqa: SIM115 -- closed when the process ends
             command = [sys.executable, "-c", _CHILD, str(spec), str(Path(folder) / f"{i}.out.json")]
             jobs.append((subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT), log))
-        # Whichever ends first is seen first: a process that fails at its start stops the
-        # others then, not after they have run their shares.
-        running = set(range(processes))
-        while running:
-            time.sleep(0.1)
-            for i in sorted(running):
-                code = jobs[i][0].poll()
-                if code is None:
-                    continue
-                running.discard(i)
-                if code:
-                    for job, log in jobs:
-                        job.kill()
-                        job.wait()
-                        log.close()
-                    output = (Path(folder) / f"{i}.log").read_text()[-3000:]
-                    raise RuntimeError(f"sweep process {i} of {processes} failed (exit status {code}):\n{output}")
-        for _, log in jobs:
-            log.close()
+        try:
+            # Whichever ends first is seen first: a process that fails at its start stops the
+            # others then, not after they have run their shares.
+            running = set(range(processes))
+            while running:
+                time.sleep(0.1)
+                for i in sorted(running):
+                    code = jobs[i][0].poll()
+                    if code is None:
+                        continue
+                    running.discard(i)
+                    if code:
+                        output = (Path(folder) / f"{i}.log").read_text()[-3000:]
+                        raise RuntimeError(f"sweep process {i} of {processes} failed (exit status {code}):\n{output}")
+        finally:
+            # One place for every way out (done, a failed process, an interrupt): no process
+            # outlives the call (killing one that has ended does nothing), no log stays open.
+            for job, log in jobs:
+                job.kill()
+                job.wait()
+                log.close()
         parts = [json.loads((Path(folder) / f"{i}.out.json").read_text()) for i in range(processes)]
     return _join(parts, settings)
 
