@@ -58,6 +58,28 @@ def _truncated_svd_jvp(rank, primals, tangents):
     return (Ur, sr, Vr.T), (dU, jnp.diagonal(C)[:rank], dV.T)
 
 
+def leading_directions(A: Float[Array, "p q"], count: int, iterations: int = 3) -> Float[Array, "p count"]:
+    """``A``'s leading ``count`` left singular vectors, each times its singular value, by
+    subspace iteration (Halko, Martinsson & Tropp 2011, algorithm 4.4): a block of
+    ``count + 4`` columns from a fixed Gaussian start, ``iterations`` products with
+    ``A A^T`` each followed by a QR factorization, and the SVD of ``A``'s projection on the
+    block. Approximate (the error falls as ``(s_{b+1} / s_count)^(2 iterations + 1)``): for
+    a warm start, where a full decomposition of ``A`` costs more than the fit it starts
+    (the paper's cube, 200 x 252: 0.6 ms against 4.0 ms for ``eigh`` of ``A A^T``). Not
+    differentiated."""
+    block = min(count + 4, *A.shape)
+    with jax.ensure_compile_time_eval():
+        start = jax.random.normal(jax.random.key(0), (A.shape[1], block), A.dtype)
+
+    # Each QR after the product before it (one LAPACK call after the other, README).
+    def power(_, Q):
+        return jnp.linalg.qr(A @ (A.T @ Q))[0]
+
+    Q = jax.lax.fori_loop(0, iterations, power, jnp.linalg.qr(A @ start)[0])
+    u, s, _ = jnp.linalg.svd(Q.T @ A, full_matrices=False)
+    return (Q @ u[:, :count]) * s[:count]
+
+
 def svd_factors(A: Float[Array, "p q"], rank: int) -> tuple[Float[Array, "p r"], Float[Array, "r q"]]:
     """Best rank-``rank`` factors of a complete matrix, balanced as ``U sqrt(s)``, ``sqrt(s) V^T``
     (differentiable wherever ``s_rank > s_rank+1``, `truncated_svd`)."""
