@@ -3,7 +3,7 @@ SciPy, one trial at a time, no compilation. It is the yardstick of ``speed.py`` 
 follows ``jaxnrsfm`` step for step on complete tracks (``method="wang"``):
 
 1. rank-4 SVD; rejection passes at ranks 4, 6, ..., 3k+1 with Cauchy weights and a
-   falling threshold, each a weighted alternating least-squares fit to rtol 1e-6 (batched
+   falling threshold, each a weighted alternating least-squares fit to rtol 1e-4 (batched
    ``numpy.linalg.solve`` over the columns and rows, QR to keep ``M`` orthonormal);
 2. the inliers by the residual model (a Student-t / uniform mixture fitted by EM for
    each degree of freedom, the scale floored at the tracks' precision), per-frame x
@@ -123,7 +123,7 @@ def masked_als(W, weights, M, max_steps=500, rtol=1e-10):
     return M, S
 
 
-def wang(W, visible, rank, passes=3, pass_rtol=1e-6):
+def wang(W, visible, rank, passes=3, pass_rtol=1e-4):
     start = min(4, rank)
     ranks = (*range(start, rank, 2), rank)
     ranks += (rank,) * max(0, passes - len(ranks))

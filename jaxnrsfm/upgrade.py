@@ -247,7 +247,10 @@ def metric_upgrade(
     model = jnp.einsum("il,iac->ialc", w, R[:, :2]).reshape(Mi.shape)
     metric_residual = jnp.sqrt(jnp.sum((Mi @ H - model) ** 2) / jnp.sum((Mi @ H) ** 2))
 
-    sign = frame_signs(R, (Mi @ S).astype(M.dtype))
+    # After the solve above (the ``0 *`` term): frame_signs' eigendecompositions depend on
+    # R alone, and two independent batched LAPACK calls that XLA's CPU runtime ran
+    # concurrently have deadlocked it (README, "Known limitations").
+    sign = frame_signs(R, (Mi @ S).astype(M.dtype) + 0.0 * shapes.sum())
     shapes = sign[:, None, None] * shapes
     R = flip_frames(R, sign)
     R, shapes = canonical_world(R, shapes)
