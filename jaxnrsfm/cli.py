@@ -47,12 +47,13 @@ def _setup(float32: bool) -> None:
     _listen_to_compilations()
 
 
-_compiled = {"seconds": 0.0, "cache_hits": 0}
+_compiled = {"seconds": 0.0, "cache_hits": 0, "cache_writes": 0}
 
 
 @functools.cache  # once a process: the listeners cannot be removed
 def _listen_to_compilations() -> None:
-    """Count the time XLA spends compiling (or loading from the cache) and the cache's hits."""
+    """Count the time XLA spends compiling (or loading from the cache), the cache's hits, and
+    the programs compiled and written to it (JAX's ``cache_misses`` event, recorded as it writes)."""
     import jax
 
     def on_duration(event: str, seconds: float, **_) -> None:
@@ -62,6 +63,8 @@ def _listen_to_compilations() -> None:
     def on_event(event: str, **_) -> None:
         if event == "/jax/compilation_cache/cache_hits":
             _compiled["cache_hits"] += 1
+        elif event == "/jax/compilation_cache/cache_misses":
+            _compiled["cache_writes"] += 1
 
     jax.monitoring.register_event_duration_secs_listener(on_duration)
     jax.monitoring.register_event_listener(on_event)
@@ -395,10 +398,12 @@ def reconstruct(
         W, visible, true_shapes = _select_frames(tracks, frames)
         frame = tracks.frame
         W = W.astype(np.float32 if float32 else np.float64)  # an explicit float64 under float32 would warn
-        t0, compiled0, hits0 = time.perf_counter(), _compiled["seconds"], _compiled["cache_hits"]
+        t0, before = time.perf_counter(), dict(_compiled)
         rec = jax.block_until_ready(nr.reconstruct(W, visible, k=k, form=form, **stages))
         elapsed = time.perf_counter() - t0
-        compile_s, cache_hits = _compiled["seconds"] - compiled0, _compiled["cache_hits"] - hits0
+        compile_s, cache_hits, compiled = (
+            _compiled[key] - before[key] for key in ("seconds", "cache_hits", "cache_writes")
+        )
         arrays = {name: np.asarray(getattr(rec, name)) for name in names}
         if out is not None:
             with open(out, "wb") as f:  # a file object: np.savez would append .npz to any other name
@@ -429,6 +434,7 @@ def reconstruct(
         "time_s": round(elapsed, 3),
         "compile_s": round(compile_s, 3),
         "compile_cache_hits": cache_hits,
+        "compiled_programs": compiled,
         "e3d": None
         if true_shapes is None
         else _number(nr.e3d(rec.shapes_in(frame), jnp.asarray(true_shapes, W.dtype))),

@@ -65,8 +65,10 @@ def test_second_call_loads_compiled_programs_from_the_cache(tmp_path):
     first, second = (json.loads(subprocess.run(command, env=env, capture_output=True, check=True).stdout) for _ in "12")
     # (The first call can hit too: a small program it compiles twice under different jit wrappers.)
     assert second["compile_cache_hits"] > first["compile_cache_hits"]
-    # Measured: 0.14 s against 0.65 s under the tests' XLA flags (conftest), 3.37 s without.
-    assert second["compile_s"] < 0.25 * first["compile_s"], (first, second)
+    # Counted, not timed: the first call compiled the pipeline, the second compiled nothing.
+    # (Its compile_s, 0.14-0.27 s against 0.65-1.05 s under the tests' XLA flags, is printed.)
+    assert first["compiled_programs"] > 0
+    assert second["compiled_programs"] == 0, (first, second)
     assert second["rms_reprojection_error"] == first["rms_reprojection_error"]
 
 
