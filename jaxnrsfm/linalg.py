@@ -65,7 +65,7 @@ def leading_directions(A: Float[Array, "p q"], count: int, iterations: int = 3) 
     ``A A^T`` each followed by a QR factorization, and the SVD of ``A``'s projection on the
     block. Approximate (the error falls as ``(s_{b+1} / s_count)^(2 iterations + 1)``): for
     a warm start, where a full decomposition of ``A`` costs more than the fit it starts
-    (the paper's cube, 200 x 252: 0.6 ms against 4.0 ms for ``eigh`` of ``A A^T``). Not
+    (the paper's cube, 200 x 252: 0.5-0.6 ms against 4.0 ms for ``eigh`` of ``A A^T``). Not
     differentiated."""
     block = min(count + 4, *A.shape)
     with jax.ensure_compile_time_eval():
