@@ -375,6 +375,38 @@ def test_residual_model_fit_converges_where_em_crawls():
     np.testing.assert_allclose(scaled, model.sigma, rtol=1e-6)
 
 
+def test_residual_model_keeps_the_law_of_highest_likelihood():
+    # residuals.fit visits only some of the laws (both ends, then inward while the likelihood
+    # rises): it must keep the law that fitting every one of them would, on lengths drawn from
+    # Rayleigh and Student-t laws of several nu, with and without uniform outliers.
+    rng = np.random.default_rng(2)
+    m, n = 60, 50
+    visible, floor = jnp.ones((m, n), bool), jnp.asarray(1e-8)
+
+    @jax.jit
+    def every_law(a):
+        data = jax.lax.stop_gradient((a, residuals._log_length(a), jnp.max(a), floor))
+        sigma0 = residuals.median_scale(a, visible, floor)
+        eps0 = jnp.clip(jnp.mean(a > 6 * sigma0), 1e-3, 0.5)
+        nus = jnp.asarray(residuals.NU, a.dtype)
+        return jax.lax.map(lambda nu: residuals._fit_nu(data, visible, sigma0, eps0, nu)[1], nus)
+
+    kept = set()
+    for nu in (2.5, 3.5, 5.0, 12.0, np.inf):
+        for outliers in (0.0, 0.15):
+            g = rng.standard_normal((m, n, 2))
+            if np.isfinite(nu):
+                g /= np.sqrt(rng.chisquare(nu, (m, n, 1)) / nu)
+            a = np.linalg.norm(g, axis=2)
+            wild = rng.random((m, n)) < outliers
+            a[wild] = rng.uniform(0, 40, wild.sum())
+            model = residuals.fit(jnp.asarray(a), visible, floor)
+            likelihoods = every_law(jnp.asarray(a))
+            assert float(model.nu) == residuals.NU[int(jnp.argmax(likelihoods))], (nu, outliers, likelihoods)
+            kept.add(float(model.nu))
+    assert len(kept) >= 3  # the cases reach laws at both ends and inside
+
+
 def _absorbed(offsets, seed=0):
     # Exact rank-4 tracks (30 frames, 40 points), point 7 displaced by ``offsets`` in 8 of its
     # 30 frames (27%), and the fit's structure of that point the least-squares fit of them,
