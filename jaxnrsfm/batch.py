@@ -4,8 +4,10 @@ There is no batched algorithm here, only a choice of how to map
 `jaxnrsfm.pipeline.reconstruct_prepared`:
 
 - ``"loop"`` (the default): a Python loop over the jit-compiled single trial. On a
-  2-core CPU it is the fastest for the robust method (``benchmarks/speed.py``, 20 cube
-  trials of ``wang``, one run: loop 0.53 s/trial, map 0.59, vmap 4 at a time 0.73);
+  2-core CPU it is the fastest for the robust method with its compilation counted
+  (``benchmarks/speed.py``, 20 paper-size cube trials of ``wang``, README run 13: loop
+  82.0 ms a trial and 9.3 s to compile, map 75.2 ms and 11.6 s, vmap 2 at a time 117.7 ms
+  and 12.3 s); ``"map"`` runs faster once compiled, and pays for larger batches;
 - ``"map"``: ``jax.lax.map``, one trial after another inside one compiled program (what
   a sweep sharded over devices runs on each device);
 - ``"vmap"``: trials in lockstep, ``batch_size`` at a time (``jax.lax.map`` over batches of
