@@ -249,7 +249,8 @@ def wang(
     ranks = rank_schedule(rank, passes)
     factors = (threshold or PASS_FACTOR) * np.geomspace(SCHEDULE, 1.0, len(ranks))
     floor = residuals.scale_floor(W, visible)
-    # The fits whose answer only decides (weights, inlier labels) stop at PASS_RTOL.
+    # The fits whose answer only decides (weights, inlier labels) stop at PASS_RTOL (or
+    # tighter, where the caller asks for a tight solve: PASS_RTOL_RATIO).
     deciding = dict(max_steps=max_steps, rtol=min(max(rtol, PASS_RTOL), rtol * PASS_RTOL_RATIO))
     if complete:
         # The passes' start, a rank-RIGID_RANK fit of every entry: its leading subspace by
