@@ -191,7 +191,8 @@ def _at_fixed_point(x, data, nu, mask):
     # its derivative by the implicit function theorem, dx = (I - F_x)^-1 F_data ddata, not
     # through the loop that found it (which reverse mode cannot differentiate). Huber's
     # scale is differentiated. A rule, so that an undifferentiated fit does not pay for it:
-    # F_x's two forward-mode passes ran in every fit (seven a fit).
+    # F_x's two forward-mode passes ran in every fit (then seven laws a fit; now it applies
+    # to the kept law alone, see `fit`).
     return x
 
 
