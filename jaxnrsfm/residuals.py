@@ -339,18 +339,25 @@ def fit(errors: Float[Array, "m n"], visible: Bool[Array, "m n"], floor: Float[A
 
     **Returns:** a `ResidualModel`; inliers are ``visible & (errors <= threshold)``.
     """
-    a = jnp.where(visible, errors, 0.0)
-    A = jnp.maximum(jnp.max(a), floor)
-    sigma0 = median_scale(errors, visible, floor)
-    eps0 = jnp.clip(jnp.sum(visible & (errors > 6 * sigma0)) / jnp.maximum(visible.sum(), 1), 1e-3, 0.5)
-    # log p_in(a) = log a - 2 log sigma + tail (log_inlier_density), with log a computed once.
-    data = (a, _log_length(a), A, floor)
+    data, sigma0, eps0 = _start(errors, visible, floor)
     nus = jnp.asarray(NU, errors.dtype)
     nu, x = _best_law(jax.lax.stop_gradient(data), visible, sigma0, eps0, nus)
     x = _at_fixed_point(x, data, nu, visible)
     sigma, eps = jnp.exp(x[0]), jax.nn.sigmoid(x[1])
     exact = masked_median(errors, visible) / RAYLEIGH_MEDIAN < floor
-    return ResidualModel(sigma, nu, eps, _threshold(sigma, nu, eps, A), exact)
+    return ResidualModel(sigma, nu, eps, _threshold(sigma, nu, eps, data[2]), exact)
+
+
+def _start(errors, visible, floor):
+    # What every law's fit is given: the data of `_em` (the lengths, their logarithm, the
+    # outliers' range A and the floor) and the start (sigma0, eps0): the median scale and
+    # the fraction of lengths beyond 6 of it.
+    a = jnp.where(visible, errors, 0.0)
+    A = jnp.maximum(jnp.max(a), floor)
+    sigma0 = median_scale(errors, visible, floor)
+    eps0 = jnp.clip(jnp.sum(visible & (errors > 6 * sigma0)) / jnp.maximum(visible.sum(), 1), 1e-3, 0.5)
+    # log p_in(a) = log a - 2 log sigma + tail (log_inlier_density), with log a computed once.
+    return (a, _log_length(a), A, floor), sigma0, eps0
 
 
 def inlier_cdf(a: Float[Array, "..."], sigma: Float[Array, ""], nu: Float[Array, ""]) -> Float[Array, "..."]:

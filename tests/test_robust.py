@@ -385,9 +385,8 @@ def test_residual_model_keeps_the_law_of_highest_likelihood():
 
     @jax.jit
     def every_law(a):
-        data = jax.lax.stop_gradient((a, residuals._log_length(a), jnp.max(a), floor))
-        sigma0 = residuals.median_scale(a, visible, floor)
-        eps0 = jnp.clip(jnp.mean(a > 6 * sigma0), 1e-3, 0.5)
+        # Every law fitted from the start `residuals.fit` gives its search.
+        data, sigma0, eps0 = residuals._start(a, visible, floor)
         nus = jnp.asarray(residuals.NU, a.dtype)
         return jax.lax.map(lambda nu: residuals._fit_nu(data, visible, sigma0, eps0, nu)[1], nus)
 
