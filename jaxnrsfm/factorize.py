@@ -109,11 +109,16 @@ def masked_als(
     max_steps: int = 500,
     rtol: float = 1e-10,
     damped_steps: int | Int[Array, ""] = 0,
+    active: Bool[Array, " r"] | None = None,
 ) -> tuple[Float[Array, "2m r"], Float[Array, "r n"], Int[Array, ""], Bool[Array, ""]]:
     """Minimise ``sum_ij weights_ij |w_ij - M_i s_j|^2`` by alternating least squares from ``M0``.
 
     ``weights`` is a visibility mask (bool) or non-negative per-entry weights; a zero
-    weight is a missing entry. The first ``damped_steps`` sweeps are damped (ridge
+    weight is a missing entry. ``active`` (leading ``True`` entries, then ``False``) marks
+    the columns of ``M0`` in use, the others being zero: the fit is then one of that lower
+    rank, its unused columns of ``M`` and rows of ``S`` kept at zero, so that fits of several
+    ranks can share one compiled loop (`jaxnrsfm.robust.wang`'s passes). The first
+    ``damped_steps`` sweeps are damped (ridge
     ``DAMPING``, see `initial_fit`); then, undamped, it stops when a sweep lowers
     the cost by less than ``rtol`` of itself, or when the cost is negligible against the
     data.
@@ -175,6 +180,10 @@ def masked_als(
         )
         # Keep M orthonormal so the gauge cannot drift towards an ill-conditioned pair.
         Q, R = jnp.linalg.qr(M + 0.0 * c_new)
+        # Unused columns of M are zero, and so are their rows of R (they trail): only Q's
+        # columns there are arbitrary. (The solves keep them at zero: a zero column of M or
+        # row of S has a zero right-hand side and no coupling to the others.)
+        Q = Q if active is None else jnp.where(active, Q, 0.0)
         # A damped sweep's cost is no reference for the convergence test: damped ALS
         # stalls at its own (ridge-biased) fixed point, which the undamped sweeps must leave.
         return Q, R @ S, c_new, jnp.where(damped, inf, c), step + 1, beta

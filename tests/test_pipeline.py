@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import jaxnrsfm as nr
-from jaxnrsfm.factorize import motion_given_structure, structure_given_motion
+from jaxnrsfm.factorize import masked_als, motion_given_structure, structure_given_motion
 
 FORMS = ("augmented", "registered")
 PAPER = dict(method="direct", shapes="upgrade")
@@ -183,3 +183,24 @@ def test_als_half_sweeps_solve_their_weighted_normal_equations():
     weighted = jnp.asarray(c) * W
     np.testing.assert_allclose(motion_given_structure(weighted, weights, S, 0.0), np.stack(rows), atol=1e-9)
     np.testing.assert_allclose(structure_given_motion(weighted, weights, M, 0.0), np.stack(columns, axis=1), atol=1e-9)
+
+
+def test_als_with_unused_columns_is_the_lower_rank_fit():
+    # masked_als's ``active``: a rank-3 start in 5 columns (two zero) fits as the rank-3 start
+    # in 3, its unused columns of M and rows of S exactly zero (robust.wang's passes of several
+    # ranks share one loop this way), with real weights and missing entries.
+    rng = np.random.default_rng(1)
+    m, n = 9, 14
+    W = jnp.asarray(
+        rng.standard_normal((2 * m, 3)) @ rng.standard_normal((3, n)) + 0.1 * rng.standard_normal((2 * m, n))
+    )
+    weights = jnp.asarray(rng.random((m, n)) * (rng.random((m, n)) > 0.2))
+    M0 = jnp.asarray(rng.standard_normal((2 * m, 3)))
+    M3, S3, steps3, _ = masked_als(W, weights, M0, rtol=1e-12)
+    padded = jnp.pad(M0, ((0, 0), (0, 2)))
+    M5, S5, steps5, _ = masked_als(W, weights, padded, rtol=1e-12, active=jnp.arange(5) < 3)
+    assert int(steps5) == int(steps3) > 2
+    assert not jnp.any(M5[:, 3:]) and not jnp.any(S5[3:])
+    # The same fit but for the solves' ridge (linalg.add_ridge: 1e-12 of the mean diagonal,
+    # here over five columns instead of three).
+    np.testing.assert_allclose(M5[:, :3] @ S5[:3], M3 @ S3, rtol=0, atol=1e-9)
