@@ -216,10 +216,13 @@ def test_huber_gradient_finite_at_zero_residual():
 
 
 EXACT_BREGLER = [
-    pytest.param(partial(nr.bregler_sequence, k=k, n_frames=60, n_points=80), id=f"bregler-k{k}") for k in (1, 2, 3)
+    pytest.param(partial(nr.bregler_sequence, k=k, n_frames=60, n_points=80), id=f"bregler-k{k}") for k in (1, 2)
 ]
-"""Random Bregler sequences, k = 1..3, for the exact-tracks tests (the noise and outliers
-are the tests')."""
+"""Random Bregler sequences, k = 1 and 2, for the exact-tracks tests (the noise and outliers
+are the tests'). With the 40-frame cube (k = 4) beside them they take `robust.wang`'s passes
+through every case of their schedule: no growth (rank 4), and growth by two directions and by
+one, into a wider loop and within one (ranks 7 and 13). k = 3 (rank 10) added no case, and
+three compiled pipelines."""
 
 
 def _bases(make) -> int:
