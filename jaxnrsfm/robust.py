@@ -270,7 +270,9 @@ def wang(
         M, S, weights, kept, last = carry
         used, pass_rank, factor = step
         reweight = used == pass_rank
-        if adds:  # one branch a growth by each count in ``adds``: each its own subspace iteration
+        # A branch for a growth by each count in ``adds``, each its own subspace iteration (a
+        # growth by one, to an odd rank, is not the first column of a growth by two).
+        if adds:
             grow = [partial(_grow, W, kept, M, S, used, add) for add in adds]
             which = jnp.where(reweight, 0, 1 + jnp.searchsorted(jnp.array(adds), pass_rank - used))
             M = jax.lax.switch(which, [lambda: M, *grow])
@@ -296,7 +298,7 @@ def wang(
     # six ranks, three widths; benchmarks/speed.py, 2-core CPU) against a loop for each rank:
     # the batch's program compiled in 7.8 s instead of 9.8 s (a single call's, under its
     # cheaper options, 3.4 s instead of 4.5 s), its trials as fast (76.2 and 77.7 ms), the
-    # same fits to round-off (40 trials of the 30-frame cube: the same inliers and sweeps).
+    # same fits to round-off (40 trials of the 30-frame cube: the same sweeps and errors).
     # One loop at the full rank halved the passes' compilation, but its trials ran 6% slower.
     def width(r):
         return min(rank, 1 << (r - 1).bit_length())
