@@ -284,12 +284,12 @@ def wang(
         M, S, _, _ = masked_als(W, weights, M, active=jnp.arange(M.shape[1]) < pass_rank, **deciding)
         return (M, S, weights, kept, last), None
 
-    # The steps (rank before, pass rank, bound factor): each pass, and before the first pass
-    # at a higher rank its growth.
-    steps = []
+    # The schedule's steps (rank before, pass rank, bound factor): each pass, and before the
+    # first pass at a higher rank its growth.
+    schedule = []
     for r, factor in zip(ranks, factors, strict=True):
-        used = steps[-1][1] if steps else ranks[0]
-        steps += [(used, r, 1.0), (r, r, factor)] if r > used else [(r, r, factor)]
+        used = schedule[-1][1] if schedule else ranks[0]
+        schedule += [(used, r, 1.0), (r, r, factor)] if r > used else [(r, r, factor)]
 
     # The passes run as one loop for each width of arrays -- the next power of two at least
     # their rank, or the full rank -- the columns beyond a pass's own rank zero (masked_als's
@@ -303,8 +303,8 @@ def wang(
     def width(r):
         return min(rank, 1 << (r - 1).bit_length())
 
-    for w in sorted({width(r) for _, r, _ in steps}):
-        group = [step for step in steps if width(step[1]) == w]
+    for w in sorted({width(r) for _, r, _ in schedule}):
+        group = [step for step in schedule if width(step[1]) == w]
         adds = sorted({r - used for used, r, _ in group if r > used})
         M, S = jnp.pad(M, ((0, 0), (0, w - M.shape[1]))), jnp.pad(S, ((0, w - S.shape[0]), (0, 0)))
         used, pass_rank, factor = zip(*group, strict=True)
