@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from . import residuals
+from . import residuals, temporal
 from .choose import choose_k
 from .factorize import Factorization, centroids, finish
 from .metrics import entry_errors
@@ -180,6 +180,22 @@ def status_of(
     return Status.where(finite, status, Status.nonfinite)
 
 
+def filled_tracks(
+    W: Float[Array, "2m n"], inliers: Bool[Array, "m n"], W_hat: Float[Array, "2m n"]
+) -> tuple[Float[Array, "2m n"], Bool[Array, "m n"]]:
+    """The tracks that the rotation and shape stages see: the observed inliers, the rejected
+    and missing entries interpolated along their tracks where the tracks predict them
+    better than the fit's typical residual (`jaxnrsfm.temporal.interpolate`; motion
+    capture), elsewhere the fit's values ``W_hat``. Also the mask of the interpolated ones.
+
+    Why: the high-rank rotations (`jaxnrsfm.stages.HighRankRotations`) need every entry,
+    and the fit's rank-``3k + 1`` values lack the deformation's tail they rely on. On the
+    Akhter sequences with 30% of the entries hidden the fit's values were 0.007--0.015 off
+    (RMS of the entries' lengths), the interpolation 0.00007--0.0012."""
+    filled = jnp.where(row_mask(inliers), W, W_hat)
+    return temporal.interpolate(filled, inliers, residuals.masked_median(entry_errors(W, W_hat), inliers))
+
+
 @eqx.filter_jit
 def reconstruct_prepared(
     W: Float[Array, "2m n"],
@@ -219,10 +235,17 @@ def reconstruct_prepared(
     # The shapes explain the observed inliers, not the rank-3k+1 fit (with wang on the
     # Akhter sequences e3D fell by 0.4--4%, drink 0.0384 from the fit, 0.0368 from the
     # inliers); elsewhere the fit's values only place each frame's centroid.
-    frames = to_frames(jnp.where(row_mask(fac.inliers), W, fac.W_hat))
+    filled, interpolated = filled_tracks(W, fac.inliers, fac.W_hat)
+    frames = to_frames(filled)
     # Known at trace time to have every entry: no mask, and no refills of the rotations.
     observed = None if complete and isinstance(method, Direct) else fac.inliers
-    R = rotations(frames - frames.mean(axis=2, keepdims=True), observed, k=k, upgrade=upgrade, M=M)
+    R = rotations(
+        frames - frames.mean(axis=2, keepdims=True),
+        None if observed is None else observed | interpolated,
+        k=k,
+        upgrade=upgrade,
+        M=M,
+    )
     eu = shapes.euclidean(frames, R, observed, k=k, upgrade=upgrade)
     return Reconstruction(
         fac.W_hat,

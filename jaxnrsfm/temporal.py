@@ -1,5 +1,10 @@
 """Temporal agreement: a second, independent witness for the entries that the low-rank model
-rejects.
+rejects, keeps or cannot see.
+
+Three uses, each only where the tracks are smooth in time: rejected entries that continue
+their track are taken back (`take_back`), kept entries that jump off it are rejected
+(`reject_jumps`), and rejected or missing entries are interpolated along it for the
+rotation step (`interpolate`). The first is the reasoning below.
 
 A rank-``3k + 1`` model rejects what it does not explain. On motion capture that includes
 clean entries: a limb's end at the extreme of a movement, which no combination of the
@@ -31,10 +36,10 @@ are not smooth either: nothing is taken back, and the robust method is unchanged
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from . import residuals
-from .tracks import to_frames
+from .tracks import from_frames, row_mask, to_frames
 
 
 def _shift(x: Array, by: int, fill) -> Array:
@@ -87,3 +92,125 @@ def take_back(
 
     start = (inliers, smooth(W, inliers, scale))
     return jax.lax.while_loop(lambda carry: carry[1], grow, start)[0]
+
+
+SPACINGS = (1, 2, 4, 8, 16, 32)
+"""Spacings ``h`` of the uniform stencils ``i -+ h, i -+ 2h`` on which `interpolate`
+measures how well the tracks' cubic interpolation predicts their trusted entries."""
+
+
+def _neighbours(trusted: Bool[Array, "m n"]) -> tuple[Int[Array, "4 m n"], Bool[Array, "4 m n"]]:
+    # For every entry, the frames of the two trusted entries of its track before it and the
+    # two after it (strictly), and whether each exists.
+    m = trusted.shape[0]
+    frame = jnp.arange(m)[:, None]
+    last = jax.lax.cummax(jnp.where(trusted, frame, -1), axis=0)  # last trusted at or before i
+    first = jax.lax.cummin(jnp.where(trusted, frame, m), axis=0, reverse=True)  # first at or after
+    before = _shift(last, 1, -1)
+    after = _shift(first, -1, m)
+    before2 = jnp.where(before >= 0, jnp.take_along_axis(before, jnp.maximum(before, 0), axis=0), -1)
+    after2 = jnp.where(after < m, jnp.take_along_axis(after, jnp.minimum(after, m - 1), axis=0), m)
+    nodes = jnp.stack([before2, before, after, after2])
+    return nodes, (nodes >= 0) & (nodes < m)
+
+
+def _lagrange(
+    X: Float[Array, "m 2 n"], nodes: Int[Array, "4 m n"], valid: Bool[Array, "4 m n"]
+) -> Float[Array, "m 2 n"]:
+    # Each entry's value by Lagrange interpolation at its own frame through the valid nodes
+    # of its track (2 to 4 of them).
+    m = X.shape[0]
+    t = jnp.arange(m, dtype=X.dtype)[:, None]
+    at = nodes.astype(X.dtype)
+    weights = []
+    for a in range(4):
+        w = jnp.ones_like(t * at[a])
+        for b in range(4):
+            if b != a:
+                gap = jnp.where(valid[b], at[a] - at[b], 1.0)
+                w = w * jnp.where(valid[b], (t - at[b]) / gap, 1.0)
+        weights.append(jnp.where(valid[a], w, 0.0))
+    values = jnp.take_along_axis(X[None], jnp.clip(nodes, 0, m - 1)[:, :, None, :], axis=1)  # (4, m, 2, n)
+    return jnp.einsum("amn,amcn->mcn", jnp.stack(weights), values)
+
+
+def stencil_errors(W: Float[Array, "2m n"], trusted: Bool[Array, "m n"], h: int) -> Float[Array, "m n"]:
+    """The distance of each entry from the cubic through its track's entries ``h`` and
+    ``2h`` frames before and after it, ``(-x[i-2h] + 4 x[i-h] + 4 x[i+h] - x[i+2h]) / 6``;
+    ``inf`` where one of those four is not trusted or does not exist."""
+    X = to_frames(W)
+    shifted = [(_shift(X, by, 0.0), _shift(trusted, by, False)) for by in (2 * h, h, -h, -2 * h)]
+    (a, ta), (b, tb), (c, tc), (d, td) = shifted
+    ok = ta & tb & tc & td
+    return jnp.where(ok, jnp.sqrt(jnp.sum((X - (-a + 4 * b + 4 * c - d) / 6) ** 2, axis=1)), jnp.inf)
+
+
+def interpolate(
+    W: Float[Array, "2m n"], trusted: Bool[Array, "m n"], scale: Float[Array, ""]
+) -> tuple[Float[Array, "2m n"], Bool[Array, "m n"]]:
+    """The tracks' untrusted entries interpolated in time from their trusted neighbours,
+    where the tracks predict better than ``scale`` (the low-rank model's typical residual).
+
+    Each untrusted entry between two trusted entries of its track gets the cubic
+    (quadratic, linear where fewer exist) through the two trusted entries before it and the
+    two after. Its span, the frames between its nearest trusted neighbours, decides
+    whether it is used: the stencils of `SPACINGS` measure, on the trusted entries, the
+    median error of a cubic whose neighbours lie ``h`` frames away (a span of ``2h``); the
+    interpolation is used up to the largest span whose error, and every shorter one's, is
+    at most ``scale``. On tracks that are not smooth in time (the paper's cube, whose
+    cameras jump from frame to frame) no span qualifies and nothing is interpolated.
+
+    **Returns:** the tracks with the interpolated entries filled in (others unchanged),
+    and the mask of the interpolated entries. The decision is discrete: a constant to the
+    gradient; the values are differentiable."""
+    m = trusted.shape[0]
+    nodes, valid = _neighbours(trusted)
+    values = from_frames(_lagrange(to_frames(W), nodes, valid))
+    span = jnp.where(valid[1] & valid[2], nodes[2] - nodes[1], m + 1)
+    fine = jnp.array(True)
+    longest = jnp.array(0)
+    for h in SPACINGS:
+        if 2 * h >= m:
+            break
+        errors = stencil_errors(jax.lax.stop_gradient(W), trusted, h)
+        fine = fine & (residuals.masked_median(errors, jnp.isfinite(errors)) <= scale)
+        longest = jnp.where(fine, 2 * h, longest)
+    filled = ~trusted & (span <= longest)
+    return jnp.where(row_mask(filled), values, W), filled
+
+
+def _local_peak(errors: Float[Array, "m n"]) -> Bool[Array, "m n"]:
+    # Whether each entry's error is the largest of its track's within two frames: an
+    # outlier at frame i also spoils the predictions of its neighbours that pass through
+    # it, but by less (at most half its own jump, `prediction_errors` taking the best).
+    finite = jnp.where(jnp.isfinite(errors), errors, -jnp.inf)
+    peak = jnp.ones(errors.shape, bool)
+    for by in (1, 2, -1, -2):
+        peak = peak & (finite >= _shift(finite, by, -jnp.inf))
+    return peak
+
+
+def reject_jumps(
+    W: Float[Array, "2m n"], inliers: Bool[Array, "m n"], scale: Float[Array, ""], floor: Float[Array, ""]
+) -> Bool[Array, "m n"]:
+    """``inliers`` without the entries that jump off their own track: an outlier small
+    enough for the low-rank model to keep is far off the line through its neighbours in
+    time. The jumps are the inliers' `prediction_errors` beyond the boundary of the
+    residual model (`jaxnrsfm.residuals.fit`) fitted to those errors, each the largest
+    of its track's within two frames; rejected in rounds until nothing changes, since a
+    rejection changes its neighbours' predictions. Unchanged unless the tracks are
+    `smooth` at the low-rank model's residual ``scale``. Discrete: a constant to the
+    gradient."""
+    W, scale, floor = jax.lax.stop_gradient((W, scale, floor))
+    errors = prediction_errors(W, inliers)
+    finite = inliers & jnp.isfinite(errors)
+    boundary = residuals.fit(jnp.where(finite, errors, 0.0), finite, floor).threshold
+
+    def drop(carry):
+        inliers, _ = carry
+        errors = prediction_errors(W, inliers)
+        jumps = inliers & jnp.isfinite(errors) & (errors > boundary) & _local_peak(errors)
+        return inliers & ~jumps, jnp.any(jumps)
+
+    start = (inliers, smooth(W, inliers, scale))
+    return jax.lax.while_loop(lambda carry: carry[1], drop, start)[0]

@@ -11,7 +11,7 @@ import pytest
 
 import jaxnrsfm as nr
 from jaxnrsfm import datasets
-from jaxnrsfm.pipeline import implausible
+from jaxnrsfm.pipeline import filled_tracks, implausible
 from jaxnrsfm.refine import above_noise_part
 from jaxnrsfm.upgrade import frame_signs
 
@@ -36,11 +36,12 @@ def yoga150():
 
 
 def _signal(W, rec, k):
-    # What the nuclear-norm shapes reproject onto exactly: the tracks (the fit's values
-    # where an entry is missing or rejected), each frame centred, in their directions above
-    # the noise (refine.above_noise_part), with each frame's centroid put back.
+    # What the nuclear-norm shapes reproject onto exactly: the tracks (interpolated along
+    # their tracks or the fit's values where an entry is missing or rejected,
+    # pipeline.filled_tracks), each frame centred, in their directions above the noise
+    # (refine.above_noise_part), with each frame's centroid put back.
     W = np.nan_to_num(np.asarray(W))
-    frames = np.asarray(nr.to_frames(np.where(np.repeat(np.asarray(rec.inliers), 2, axis=0), W, rec.W_hat)))
+    frames = np.asarray(nr.to_frames(filled_tracks(W, rec.inliers, rec.W_hat)[0]))
     mean = frames.mean(axis=2, keepdims=True)
     return np.asarray(above_noise_part(frames - mean, 3 * k)) + mean
 
