@@ -330,7 +330,7 @@ def wang(
     # A rejected entry that continues its own track is not an outlier (jaxnrsfm.temporal).
     inliers = temporal.take_back(W, visible, inliers, take_back, model.sigma)
     # An inlier that jumps off its own track is an outlier the model kept (jaxnrsfm.temporal).
-    inliers = temporal.reject_jumps(W, inliers, model.sigma, floor)
+    inliers = temporal.reject_jumps(W, inliers, model.sigma, take_back / model.sigma, floor)
     # A frame or point with 25-30% outliers absorbs those it kept into its own parameters;
     # its robust re-fit, given the others, does not (row_column_check). It checks the
     # least-squares fit of the inliers, warm-started where the reclassification left it.

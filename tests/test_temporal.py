@@ -107,7 +107,7 @@ def test_interpolation_spans_follow_the_tracks_smoothness():
 
 def test_jumps_off_the_track_are_rejected():
     # Displacements of 10 units that a low-rank model kept as inliers: each is the largest
-    # prediction error of its track nearby, far beyond the errors' own model; their
+    # prediction error of its track nearby, beyond 10 median scales of those errors; their
     # neighbours, whose predictions pass through them, stay. Clean tracks lose nothing, nor
     # do tracks out of temporal order.
     X = _smooth_tracks()
@@ -118,8 +118,8 @@ def test_jumps_off_the_track_are_rejected():
     X_out[:, 1][jumps] -= 10.0
     everything = jnp.ones((m, n), bool)
     floor = jnp.asarray(1e-6)
-    kept = reject_jumps(from_frames(jnp.asarray(X_out)), everything, jnp.asarray(5.0), floor)
+    kept = reject_jumps(from_frames(jnp.asarray(X_out)), everything, jnp.asarray(5.0), jnp.asarray(10.0), floor)
     np.testing.assert_array_equal(~np.asarray(kept), jumps)
-    assert bool(reject_jumps(from_frames(jnp.asarray(X)), everything, jnp.asarray(5.0), floor).all())
+    assert bool(reject_jumps(from_frames(jnp.asarray(X)), everything, jnp.asarray(5.0), jnp.asarray(10.0), floor).all())
     shuffled = from_frames(jnp.asarray(X_out[np.random.default_rng(1).permutation(m)]))
-    assert bool(reject_jumps(shuffled, everything, jnp.asarray(5.0), floor).all())
+    assert bool(reject_jumps(shuffled, everything, jnp.asarray(5.0), jnp.asarray(10.0), floor).all())
