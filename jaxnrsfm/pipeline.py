@@ -2,8 +2,9 @@
 
 ``reconstruct`` validates the tracks and the stages (before anything is compiled), then
 runs one jit-compiled pure pipeline of the stages (`jaxnrsfm.stages`): the outlier
-strategy's low-rank fit -> metric upgrade (where a stage reads it) -> rotation recovery ->
-shape step. One sequence per call; a batch is ``jax.vmap`` of the same call.
+strategy's low-rank fit -> metric upgrade (where a stage reads it) -> the rejected and
+missing entries filled (`filled_tracks`) -> rotation recovery -> shape step. One sequence
+per call; a batch is ``jax.vmap`` of the same call.
 """
 
 from typing import Literal

@@ -87,9 +87,10 @@ def test_high_rank_rotations(yoga150):
 
 @needs_data
 def test_high_rank_rotations_with_missing_entries(yoga150):
-    # Entries hidden at random: the high-rank rotations refill them from the nuclear-norm
-    # shapes (refine.high_rank_rotations), and the shapes leave them free. Measured: 0.0339
-    # with 30% hidden against 0.0336 with every entry.
+    # Entries hidden at random: interpolated along their tracks for the rotations
+    # (pipeline.filled_tracks; before, refilled from the nuclear-norm shapes: 0.0339), and
+    # the shapes leave them free. Measured: 0.0286 with 30% hidden against 0.0336 with
+    # every entry.
     W, shapes, _ = yoga150
     observed = np.asarray(nr.drop_entries(jax.random.key(1), np.ones((150, 41), bool), 0.3))
     W_missing = np.where(np.repeat(observed, 2, axis=0), np.asarray(W), np.nan)
@@ -105,11 +106,12 @@ def test_high_rank_rotations_with_missing_entries(yoga150):
 @needs_data
 def test_default_call_with_outliers(yoga150):
     # The default call, nr.reconstruct(W): k chosen, the paper's robust method, rotations
-    # from every direction above the noise, rejected entries refilled like missing ones.
-    # Measured: clean e3D 0.0326 (k = 2, no entry rejected); with 10% outliers 0.0355
-    # (+9.1%), recall 0.964, none of the clean entries rejected. Before the temporal
-    # witness (jaxnrsfm.temporal) took back the rejected entries that continue their
-    # tracks: 0.0402 (+23%), 0.4% of the clean entries rejected.
+    # from every direction above the noise, rejected entries interpolated like missing ones.
+    # Measured: clean e3D 0.0333 (k = 2, one entry rejected as a jump off its track); with
+    # 10% outliers 0.0340 (+2.2%), recall 0.993, 0.05% of the clean entries rejected. Before
+    # the temporal prior (jaxnrsfm.temporal) interpolated and rejected jumps: 0.0326 and
+    # 0.0355 (+9.1%), recall 0.964; before it took back the rejected entries that continue
+    # their tracks: 0.0402 (+23%), 0.4% of the clean entries rejected.
     W, shapes, _ = yoga150
     extent = float(W.max() - W.min())
     W_out, outliers = nr.inject_outliers(jax.random.key(1), W, ratio=0.1, magnitude=(0.025 * extent, 0.125 * extent))
@@ -118,10 +120,10 @@ def test_default_call_with_outliers(yoga150):
     assert clean.weights.shape[1] == dirty.weights.shape[1]  # the same k, outliers or not
     assert float(np.mean(~np.asarray(clean.inliers))) < 0.02  # the model misfit is not outliers
     found = ~np.asarray(dirty.inliers)
-    assert float(found[np.asarray(outliers)].mean()) > 0.9
+    assert float(found[np.asarray(outliers)].mean()) > 0.95
     assert float(found[~np.asarray(outliers)].mean()) < 0.002  # precision: clean entries kept
     e_clean, e_dirty = (float(nr.e3d(rec.shapes, shapes)) for rec in (clean, dirty))
-    assert e_clean < 0.035 and e_dirty < 1.15 * e_clean
+    assert e_clean < 0.035 and e_dirty < 1.1 * e_clean
     k = dirty.weights.shape[1]
     gap = np.where(np.asarray(dirty.inliers)[:, None], _projection(dirty) - _signal(W_out, dirty, k), 0.0)
     np.testing.assert_allclose(gap, 0.0, atol=1e-8 * extent)
