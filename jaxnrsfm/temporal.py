@@ -134,13 +134,22 @@ def _lagrange(
     return jnp.einsum("amn,amcn->mcn", jnp.stack(weights), values)
 
 
-def stencil_errors(W: Float[Array, "2m n"], trusted: Bool[Array, "m n"], h: int) -> Float[Array, "m n"]:
+def stencil_errors(
+    W: Float[Array, "2m n"], trusted: Bool[Array, "m n"], h: Int[Array, ""] | int
+) -> Float[Array, "m n"]:
     """The distance of each entry from the cubic through its track's entries ``h`` and
     ``2h`` frames before and after it, ``(-x[i-2h] + 4 x[i-h] + 4 x[i+h] - x[i+2h]) / 6``;
-    ``inf`` where one of those four is not trusted or does not exist."""
+    ``inf`` where one of those four is not trusted or does not exist. ``h`` may be traced."""
     X = to_frames(W)
-    shifted = [(_shift(X, by, 0.0), _shift(trusted, by, False)) for by in (2 * h, h, -h, -2 * h)]
-    (a, ta), (b, tb), (c, tc), (d, td) = shifted
+    m = X.shape[0]
+    frame = jnp.arange(m)
+
+    def shifted(by):
+        # x[i - by] at frame i, and whether that frame exists and is trusted.
+        exists = ((frame - by >= 0) & (frame - by < m))[:, None]
+        return jnp.roll(X, by, axis=0), exists & jnp.roll(trusted, by, axis=0)
+
+    (a, ta), (b, tb), (c, tc), (d, td) = (shifted(by) for by in (2 * h, h, -h, -2 * h))
     ok = ta & tb & tc & td
     return jnp.where(ok, jnp.sqrt(jnp.sum((X - (-a + 4 * b + 4 * c - d) / 6) ** 2, axis=1)), jnp.inf)
 
@@ -167,14 +176,18 @@ def interpolate(
     nodes, valid = _neighbours(trusted)
     values = from_frames(_lagrange(to_frames(W), nodes, valid))
     span = jnp.where(valid[1] & valid[2], nodes[2] - nodes[1], m + 1)
-    fine = jnp.array(True)
-    longest = jnp.array(0)
-    for h in SPACINGS:
-        if 2 * h >= m:
-            break
-        errors = stencil_errors(jax.lax.stop_gradient(W), trusted, h)
+    fixed = jax.lax.stop_gradient(W)
+
+    def longer(carry, h):
+        # A scan, not a Python loop: one copy of the stencil and its median in the program
+        # (the interpolation compiled in 0.22 s with a copy per spacing under the tests' flags).
+        fine, longest = carry
+        errors = stencil_errors(fixed, trusted, h)
         fine = fine & (residuals.masked_median(errors, jnp.isfinite(errors)) <= scale)
-        longest = jnp.where(fine, 2 * h, longest)
+        return (fine, jnp.where(fine, 2 * h, longest)), None
+
+    spacings = jnp.array([h for h in SPACINGS if 2 * h < m])
+    (_, longest), _ = jax.lax.scan(longer, (jnp.array(True), jnp.array(0)), spacings)
     filled = ~trusted & (span <= longest)
     return jnp.where(row_mask(filled), values, W), filled
 
