@@ -236,17 +236,14 @@ def reconstruct_prepared(
     # The shapes explain the observed inliers, not the rank-3k+1 fit (with wang on the
     # Akhter sequences e3D fell by 0.4--4%, drink 0.0384 from the fit, 0.0368 from the
     # inliers); elsewhere the fit's values only place each frame's centroid.
-    filled, interpolated = filled_tracks(W, fac.inliers, fac.W_hat)
-    frames = to_frames(filled)
-    # Known at trace time to have every entry: no mask, and no refills of the rotations.
-    observed = None if complete and isinstance(method, Direct) else fac.inliers
-    R = rotations(
-        frames - frames.mean(axis=2, keepdims=True),
-        None if observed is None else observed | interpolated,
-        k=k,
-        upgrade=upgrade,
-        M=M,
-    )
+    # Known at trace time to have every entry: no mask, nothing to fill, and no refills of
+    # the rotations.
+    if complete and isinstance(method, Direct):
+        frames, observed, known = to_frames(W), None, None
+    else:
+        filled, interpolated = filled_tracks(W, fac.inliers, fac.W_hat)
+        frames, observed, known = to_frames(filled), fac.inliers, fac.inliers | interpolated
+    R = rotations(frames - frames.mean(axis=2, keepdims=True), known, k=k, upgrade=upgrade, M=M)
     eu = shapes.euclidean(frames, R, observed, k=k, upgrade=upgrade)
     return Reconstruction(
         fac.W_hat,
