@@ -235,7 +235,8 @@ def reconstruct_prepared(
     upgrade = metric_upgrade(M, S, t, k) if rotations.needs_upgrade or shapes.needs_upgrade else None
     # The shapes explain the observed inliers, not the rank-3k+1 fit (with wang on the
     # Akhter sequences e3D fell by 0.4--4%, drink 0.0384 from the fit, 0.0368 from the
-    # inliers); elsewhere the fit's values only place each frame's centroid.
+    # inliers); elsewhere the filled values (filled_tracks) only place each frame's centroid
+    # and complete the tracks for the rotations.
     # Known at trace time to have every entry: no mask, nothing to fill, and no refills of
     # the rotations.
     if complete and isinstance(method, Direct):

@@ -42,10 +42,12 @@ from . import residuals
 from .tracks import from_frames, row_mask, to_frames
 
 
-def _shift(x: Array, by: int, fill) -> Array:
-    # x[i - by] at frame i (frames on axis 0), ``fill`` where that frame does not exist.
-    pad = jnp.full((abs(by), *x.shape[1:]), fill, x.dtype)
-    return jnp.concatenate([pad, x[:-by]]) if by > 0 else jnp.concatenate([x[-by:], pad])
+def _shift(x: Array, by: Int[Array, ""] | int, fill) -> Array:
+    # x[i - by] at frame i (frames on axis 0), ``fill`` where that frame does not exist;
+    # ``by`` may be traced (`stencil_errors` under a scan).
+    m = x.shape[0]
+    frame = jnp.arange(m).reshape(m, *([1] * (x.ndim - 1)))
+    return jnp.where((frame - by >= 0) & (frame - by < m), jnp.roll(x, by, axis=0), fill)
 
 
 def prediction_errors(W: Float[Array, "2m n"], trusted: Bool[Array, "m n"]) -> Float[Array, "m n"]:
@@ -71,6 +73,20 @@ def smooth(W: Float[Array, "2m n"], inliers: Bool[Array, "m n"], scale: Float[Ar
     return residuals.masked_median(errors, inliers & jnp.isfinite(errors)) <= scale
 
 
+def _in_rounds(
+    update, W: Float[Array, "2m n"], inliers: Bool[Array, "m n"], scale: Float[Array, ""]
+) -> Bool[Array, "m n"]:
+    # ``update`` (inliers -> inliers) applied until nothing changes, each change altering
+    # the predictions of its neighbours; not at all unless the tracks are `smooth` at the
+    # low-rank model's residual ``scale``.
+    def round_(carry):
+        inliers, _ = carry
+        new = update(inliers)
+        return new, jnp.any(new != inliers)
+
+    return jax.lax.while_loop(lambda carry: carry[1], round_, (inliers, smooth(W, inliers, scale)))[0]
+
+
 def take_back(
     W: Float[Array, "2m n"],
     visible: Bool[Array, "m n"],
@@ -84,14 +100,7 @@ def take_back(
     `smooth` at the model's residual ``scale``. The decision is discrete: a constant
     to the gradient."""
     W, bound, scale = jax.lax.stop_gradient((W, bound, scale))
-
-    def grow(carry):
-        inliers, _ = carry
-        more = inliers | (visible & (prediction_errors(W, inliers) <= bound))
-        return more, jnp.any(more != inliers)
-
-    start = (inliers, smooth(W, inliers, scale))
-    return jax.lax.while_loop(lambda carry: carry[1], grow, start)[0]
+    return _in_rounds(lambda inliers: inliers | (visible & (prediction_errors(W, inliers) <= bound)), W, inliers, scale)
 
 
 SPACINGS = (1, 2, 4, 8, 16, 32)
@@ -141,15 +150,8 @@ def stencil_errors(
     ``2h`` frames before and after it, ``(-x[i-2h] + 4 x[i-h] + 4 x[i+h] - x[i+2h]) / 6``;
     ``inf`` where one of those four is not trusted or does not exist. ``h`` may be traced."""
     X = to_frames(W)
-    m = X.shape[0]
-    frame = jnp.arange(m)
-
-    def shifted(by):
-        # x[i - by] at frame i, and whether that frame exists and is trusted.
-        exists = ((frame - by >= 0) & (frame - by < m))[:, None]
-        return jnp.roll(X, by, axis=0), exists & jnp.roll(trusted, by, axis=0)
-
-    (a, ta), (b, tb), (c, tc), (d, td) = (shifted(by) for by in (2 * h, h, -h, -2 * h))
+    shifted = [(_shift(X, by, 0.0), _shift(trusted, by, False)) for by in (2 * h, h, -h, -2 * h)]
+    (a, ta), (b, tb), (c, tc), (d, td) = shifted
     ok = ta & tb & tc & td
     return jnp.where(ok, jnp.sqrt(jnp.sum((X - (-a + 4 * b + 4 * c - d) / 6) ** 2, axis=1)), jnp.inf)
 
@@ -235,11 +237,8 @@ def reject_jumps(
     errors = prediction_errors(W, inliers)
     boundary = ratio * residuals.median_scale(errors, inliers & jnp.isfinite(errors), floor)
 
-    def drop(carry):
-        inliers, _ = carry
+    def drop(inliers):
         errors = prediction_errors(W, inliers)
-        jumps = inliers & jnp.isfinite(errors) & (errors > boundary) & _local_peak(errors)
-        return inliers & ~jumps, jnp.any(jumps)
+        return inliers & ~(jnp.isfinite(errors) & (errors > boundary) & _local_peak(errors))
 
-    start = (inliers, smooth(W, inliers, scale))
-    return jax.lax.while_loop(lambda carry: carry[1], drop, start)[0]
+    return _in_rounds(drop, W, inliers, scale)
