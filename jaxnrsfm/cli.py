@@ -288,6 +288,15 @@ def reconstruct(
         float | None,
         typer.Option(help="trace_norm: weight of the trace norm [0.1].", show_default=False, rich_help_panel=_ROT),
     ] = None,
+    camera: Annotated[
+        str | None,
+        typer.Option(
+            help="high_rank: the camera's motion, constant_velocity (where the rotations follow one) or free "
+            "[constant_velocity].",
+            show_default=False,
+            rich_help_panel=_ROT,
+        ),
+    ] = None,
     shapes: Annotated[
         str,
         typer.Option(
@@ -386,6 +395,7 @@ def reconstruct(
             "--starts": starts,
             "--refills": refills,
             "--trace-norm-weight": trace_norm_weight,
+            "--camera": camera,
             "--shape-steps": shape_steps,
             "--shape-rho": shape_rho,
             "--raw-tracks": False if raw_tracks else None,
@@ -460,6 +470,7 @@ STAGE_FLAGS = {
         "starts": "--starts",
         "refills": "--refills",
         "weight": "--trace-norm-weight",
+        "camera": "--camera",
         # The high-rank rotations' refills solve the shape step's ADMM: --shape-steps sets both.
         "steps": "--shape-steps",
     },

@@ -9,11 +9,12 @@ relaxation (`TraceNormRotations`). The kernels live in `jaxnrsfm.refine` and
 """
 
 import abc
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import equinox as eqx
 from jaxtyping import Array, Bool, Float
 
+from ..camera import camera_prior
 from ..refine import high_rank_rotations, trace_norm_triple
 from ..tracks import to_frames
 from ..upgrade import Euclidean, flip_frames, frame_signs, nearest_rotations
@@ -69,8 +70,9 @@ class HighRankRotations(RotationRecovery):
     (`jaxnrsfm.refine.high_rank_rotations`): in a high-rank space the constraints can
     pick a combination of points that the deformation barely moves, where the rank-``3k``
     motion space leaks the deformation ``k`` bases do not explain. Unobserved and rejected
-    entries are refilled from the nuclear-norm shapes and the rotations solved again. Not
-    tested for gradients."""
+    entries are refilled from the nuclear-norm shapes and the rotations solved again. Then,
+    by default, the camera turning at a constant angular velocity nearest to them where they
+    follow one (`jaxnrsfm.camera.camera_prior`). Not tested for gradients."""
 
     needs_upgrade: ClassVar[bool] = False
 
@@ -84,6 +86,13 @@ class HighRankRotations(RotationRecovery):
     """Refills of the unobserved entries from the shapes, each followed by a new solve."""
     steps: int = 500
     """ADMM iterations of the refills' nuclear-norm shapes."""
+    camera: Literal["constant_velocity", "free"] = "constant_velocity"
+    """The camera's motion: ``"constant_velocity"`` (the default) takes the camera turning
+    at a constant angular velocity nearest to the recovered rotations where they stray from
+    it by at most `jaxnrsfm.camera.MAX_TURN` degrees, the object's own turning going to the
+    shapes (`jaxnrsfm.camera`; Akhter's sequences: e3D 0.0262 / 0.1554 / 0.0962 / 0.1114 /
+    0.1740 -> 0.0238 / 0.0428 / 0.0324 / 0.0442 / 0.1649, drink, pickup, yoga, stretch,
+    dance); ``"free"`` keeps the frame in which the points' rigid combination stands still."""
 
     def __check_init__(self):
         if self.rank is not None and not (isinstance(self.rank, int) and self.rank >= 1):
@@ -93,6 +102,8 @@ class HighRankRotations(RotationRecovery):
                 raise ValueError(f"{name} must be a positive integer; got {getattr(self, name)!r}")
         if not (isinstance(self.refills, int) and self.refills >= 0):
             raise ValueError(f"refills must be a non-negative integer; got {self.refills!r}")
+        if self.camera not in ("constant_velocity", "free"):
+            raise ValueError(f"camera must be 'constant_velocity' or 'free'; got {self.camera!r}")
 
     def check(self, shape, k):
         m, n = shape
@@ -103,7 +114,7 @@ class HighRankRotations(RotationRecovery):
         # Where the shape step made the pipeline compute the upgrade, the data dependency on
         # it orders these LAPACK calls after its own: two independent batched LAPACK calls
         # in one jit can deadlock on the CPU backend.
-        return high_rank_rotations(
+        R = high_rank_rotations(
             frames if upgrade is None else frames + 0.0 * upgrade.metric_residual,
             self.rank,
             observed,
@@ -112,6 +123,7 @@ class HighRankRotations(RotationRecovery):
             refills=self.refills,
             steps=self.steps,
         )
+        return camera_prior(R) if self.camera == "constant_velocity" else R
 
 
 class TraceNormRotations(RotationRecovery):
