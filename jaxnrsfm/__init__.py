@@ -60,6 +60,9 @@ from .synthetic import (
     SyntheticSequence as SyntheticSequence,
 )
 from .synthetic import (
+    articulated_sequence as articulated_sequence,
+)
+from .synthetic import (
     bregler_sequence as bregler_sequence,
 )
 from .synthetic import (
