@@ -90,8 +90,8 @@ class HighRankRotations(RotationRecovery):
     """The camera's motion: ``"constant_velocity"`` (the default) takes the camera turning
     at a constant angular velocity nearest to the recovered rotations where they stray from
     it by at most `jaxnrsfm.camera.MAX_TURN` degrees, the object's own turning going to the
-    shapes (`jaxnrsfm.camera`; Akhter's sequences: e3D 0.0262 / 0.1554 / 0.0962 / 0.1114 /
-    0.1740 -> 0.0238 / 0.0428 / 0.0324 / 0.0442 / 0.1649, drink, pickup, yoga, stretch,
+    shapes (`jaxnrsfm.camera`; Akhter's sequences: e3D 0.0263 / 0.1554 / 0.0962 / 0.1114 /
+    0.1740 -> 0.0238 / 0.0428 / 0.0324 / 0.0443 / 0.1649, drink, pickup, yoga, stretch,
     dance); ``"free"`` keeps the frame in which the points' rigid combination stands still."""
 
     def __check_init__(self):
