@@ -41,7 +41,8 @@ def main() -> None:
         for key in range(args.keys):
             seq = nr.articulated_sequence(jax.random.key(key), camera=kind)
             W, truth = seq.W, seq.shapes
-            frames = nr.to_frames(W) - nr.to_frames(W).mean(axis=2, keepdims=True)
+            frames = nr.to_frames(W)
+            frames = frames - frames.mean(axis=2, keepdims=True)
             oracle = float(nr.e3d(refine.nuclear_shapes(frames, seq.rotations), truth))
             rec = nr.reconstruct(W)
             e_default = float(nr.e3d(rec.shapes, truth))

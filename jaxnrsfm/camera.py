@@ -34,10 +34,11 @@ MAX_TURN = 20.0
 """Largest median angle, in degrees, between the recovered rotations and the fitted
 constant-velocity camera at which `camera_prior` adopts the camera: the object's own
 turning it takes into the shapes. Measured (median angle): Akhter's sequences and their
-halves 0.2--11.9 (pickup's first half); a synthetic articulated figure under an orbiting
-camera whose tilt wobbles by 5 degrees 7.7--33.5 (the camera's help there grew with the
-angle: e3D 0.52 -> 0.12 at 27 degrees); under a camera panning +-60 degrees, which the
-prior would misread, 33.6--39.3; random cameras (Bregler sequences) 112--128."""
+halves 0.2--11.9 (pickup's first half); `jaxnrsfm.articulated_sequence` under an orbiting
+camera whose tilt wobbles by 5 degrees 8.2--61.7 (keys 0-5; taken at 8.2, 8.2 and 20.0,
+e3D 0.1601 -> 0.1594, 0.2117 -> 0.1311, 0.3024 -> 0.1502: ``benchmarks/synthetic_mocap.py``),
+under a camera panning +-60 degrees, which the prior would misread, 29.9--43.1; random
+cameras (Bregler sequences) 112--128."""
 
 
 def _skew(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
@@ -73,8 +74,8 @@ def rotation_log(R: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
 def constant_velocity(rotations: Float[Array, "m 3 3"]) -> Float[Array, "m 3 3"]:
     """The camera turning at a constant angular velocity nearest to ``rotations``:
     ``exp(t_i [w]_x) R_0`` (``t_i`` frames from the middle one) with ``w`` the median
-    frame-to-frame rotation vector and
-    ``R_0`` the rotation nearest to ``sum_i exp(t_i [w]_x)^T R_i`` (module docstring)."""
+    frame-to-frame rotation vector and ``R_0`` the rotation nearest to
+    ``sum_i exp(t_i [w]_x)^T R_i`` (module docstring)."""
     m = rotations.shape[0]
     steps = rotation_log(rotations[1:] @ jnp.swapaxes(rotations[:-1], -1, -2))
     w = jnp.median(steps, axis=0)

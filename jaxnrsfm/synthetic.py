@@ -343,11 +343,14 @@ def articulated_sequence(
     torso += [(2, (sx * 15.0, 10.0, sz * 8.0)) for sx in (-1, 1) for sz in (-1, 1)]
     torso_bone = jnp.asarray([b for b, _ in torso])
     torso_offset = jnp.asarray([o for _, o in torso], dtype) + jax.random.normal(next(keys), (8, 3), dtype)
+    # A limb marker lies on a joint's segment towards one child (the last listed, where a
+    # joint has several: the pelvis's towards the right hip, the chest's the right shoulder).
     segment = {parent: child for child, (parent, _, _) in enumerate(SKELETON) if parent >= 0}
-    bones = jnp.asarray(sorted(segment))
-    limb_bone = jax.random.choice(next(keys), bones, (16,))
-    child_offset = jnp.asarray([SKELETON[segment.get(b, b)][1] for b in range(joints)], dtype)
-    along = jax.random.uniform(next(keys), (16, 1), dtype, 0.2, 0.8) * child_offset[limb_bone]
+    bones = sorted(segment)
+    pick = jax.random.choice(next(keys), len(bones), (16,))
+    limb_bone = jnp.asarray(bones)[pick]
+    towards = jnp.asarray([SKELETON[segment[b]][1] for b in bones], dtype)[pick]
+    along = jax.random.uniform(next(keys), (16, 1), dtype, 0.2, 0.8) * towards
     limb_offset = along + 4.0 * jax.random.normal(next(keys), (16, 3), dtype)
     bone = jnp.concatenate([torso_bone, limb_bone])
     offset = jnp.concatenate([torso_offset, limb_offset])[None] + 0.1 * waves(next(keys), (24, 3), 20.0, 100.0)
