@@ -26,8 +26,8 @@ class RotationRecovery(eqx.Module):
     ``__call__(frames, observed, *, k, upgrade, M)`` takes the centred tracks per frame
     ``(m, 2, n)`` (observed inliers; missing and rejected entries interpolated along their
     tracks or, where the tracks are not smooth in time, the fit's values:
-    `jaxnrsfm.pipeline.filled_tracks`), the mask of the observed inliers and interpolated
-    entries (``None``: all), the number of shape bases,
+    `jaxnrsfm.pipeline.filled_tracks`), the mask of the observed inliers (``None``: all),
+    the number of shape bases,
     the metric upgrade (`jaxnrsfm.Euclidean`) and the centred affine motion ``M``
     ``(2m, 3k)`` it came from, and returns rotations ``(m, 3, 3)``: frame ``i`` projects
     with ``rotations[i, :2]``, in the frame sign (reflection) that fits the tracks. Pure
