@@ -244,11 +244,10 @@ def reconstruct_prepared(
     # The rotations are told which entries were observed, not which were interpolated: the
     # refills of the high-rank rotations then replace the interpolated values with the
     # projections of their shapes. Counting the interpolated entries as observed (no
-    # refills) was the rule before the camera prior; against it, on the Akhter sequences
-    # with 10% outliers or 30% missing (``benchmarks/real_sequences.py``'s injections and
-    # three more of each), e3D moved by -0.7%..+18.1% and +1.3%..+41.4% from clean, by
-    # -3.9%..+7.4% and -2.2%..+18.9% with the refills (dance's missing entries: +30.3%,
-    # +41.4%, +37.4% against +7.9%, +18.9%, +14.8%).
+    # refills) was the rule before the camera prior. On the Akhter sequences with 10%
+    # outliers or 30% missing (``benchmarks/real_sequences.py --seeds 4``: 20 runs of each)
+    # e3D moved from clean by -1.7%..+18.1% and -2.5%..+41.4% that way (4 runs beyond
+    # +10% and +20%), by -5.0%..+11.3% and -2.3%..+18.9% with the refills (1 run).
     if complete and isinstance(method, Direct):
         frames, observed = to_frames(W), None
     else:
