@@ -284,6 +284,14 @@ def reconstruct(
         int | None,
         typer.Option(help="high_rank: refills of unobserved entries [2].", show_default=False, rich_help_panel=_ROT),
     ] = None,
+    held_out: Annotated[
+        float | None,
+        typer.Option(
+            help="high_rank: fraction of entries the solve sees only through the refills [0].",
+            show_default=False,
+            rich_help_panel=_ROT,
+        ),
+    ] = None,
     trace_norm_weight: Annotated[
         float | None,
         typer.Option(help="trace_norm: weight of the trace norm [0.1].", show_default=False, rich_help_panel=_ROT),
@@ -394,6 +402,7 @@ def reconstruct(
             "--rotation-rank": rotation_rank,
             "--starts": starts,
             "--refills": refills,
+            "--held-out": held_out,
             "--trace-norm-weight": trace_norm_weight,
             "--camera": camera,
             "--shape-steps": shape_steps,
@@ -469,6 +478,7 @@ STAGE_FLAGS = {
         "rank": "--rotation-rank",
         "starts": "--starts",
         "refills": "--refills",
+        "held_out": "--held-out",
         "weight": "--trace-norm-weight",
         "camera": "--camera",
         # The high-rank rotations' refills solve the shape step's ADMM: --shape-steps sets both.

@@ -52,6 +52,7 @@ def test_option_errors(kwargs, message):
         (lambda: nr.Huber(delta=-1.0), "delta must be > 0"),
         (lambda: nr.Huynh(iterations=0), "iterations"),
         (lambda: nr.HighRankRotations(rank=0), "rank must be"),
+        (lambda: nr.HighRankRotations(held_out=1.0), "held_out must be in"),
         (lambda: nr.TraceNormRotations(weight=0.0), "weight must be > 0"),
         (lambda: nr.NuclearShapes(steps=0), "steps must be"),
         (lambda: nr.NuclearShapes(denoise=1), "denoise must be True or False"),
