@@ -239,8 +239,6 @@ def reconstruct_prepared(
     # Akhter sequences e3D fell by 0.4--4%, drink 0.0384 from the fit, 0.0368 from the
     # inliers); elsewhere the filled values (filled_tracks) only place each frame's centroid
     # and complete the tracks for the rotations.
-    # Known at trace time to have every entry: no mask, nothing to fill, and no refills of
-    # the rotations.
     # The rotations are told which entries were observed, not which were interpolated: the
     # refills of the high-rank rotations then replace the interpolated values with the
     # projections of their shapes. Counting the interpolated entries as observed (no
@@ -248,6 +246,8 @@ def reconstruct_prepared(
     # outliers or 30% missing (``benchmarks/real_sequences.py --seeds 4``: 20 runs of each)
     # e3D moved from clean by -1.7%..+18.1% and -2.5%..+41.4% that way (4 runs beyond
     # +10% and +20%), by -5.0%..+11.3% and -2.3%..+18.9% with the refills (1 run).
+    # Known at trace time to have every entry: no mask, nothing to fill, and no refills of
+    # the rotations.
     if complete and isinstance(method, Direct):
         frames, observed = to_frames(W), None
     else:
