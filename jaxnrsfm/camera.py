@@ -35,9 +35,9 @@ MAX_TURN = 20.0
 constant-velocity camera at which `camera_prior` adopts the camera: the object's own
 turning it takes into the shapes. Measured (median angle): Akhter's sequences and their
 halves 0.2--11.9 (pickup's first half); `jaxnrsfm.articulated_sequence` under an orbiting
-camera whose tilt wobbles by 5 degrees 8.2--61.7 (keys 0-5; taken at 8.2, 8.2 and 20.0,
-e3D 0.1601 -> 0.1594, 0.2117 -> 0.1311, 0.3024 -> 0.1502: ``benchmarks/synthetic_mocap.py``),
-under a camera panning +-60 degrees, which the prior would misread, 29.9--43.1; random
+camera whose tilt wobbles by 5 degrees 7.5--31.2 (keys 0-5; taken at 7.5, 10.2 and 19.3,
+e3D 0.2291 -> 0.2028, 0.2100 -> 0.0898, 0.3132 -> 0.1965: ``benchmarks/synthetic_mocap.py``),
+under a camera panning +-60 degrees, which the prior would misread, 26.0--77.9; random
 cameras (Bregler sequences) 112--128."""
 
 

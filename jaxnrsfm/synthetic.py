@@ -307,8 +307,9 @@ def articulated_sequence(
     ``camera``: ``"orbit"``, turning about the vertical at 2.5-7.5 degrees a frame with its
     tilt (within 20 degrees) wobbling by 5 degrees, or ``"pan"``, swinging 60 degrees
     either way about the vertical (periods 100-200 frames). The pelvis stands still in the
-    world frame: the ground truth's ``shapes`` are in it. Noise, missing entries and
-    outliers as in `deformable_cube`; ``weights`` and ``bases`` are ``None``.
+    world frame: the ground truth's ``shapes`` are in it. The image drifts smoothly by up to
+    100 units. Noise, missing entries and outliers as in `deformable_cube`; ``weights`` and
+    ``bases`` are ``None``.
     """
     dtype = dtype or jnp.result_type(float)
     if camera not in ("orbit", "pan"):
@@ -371,5 +372,8 @@ def articulated_sequence(
         yaw = start + jnp.radians(60.0) * waves(next(keys), (), 100.0, 200.0)
         tilt = jnp.zeros_like(t)
     rotations = rotation_exp(tilt[:, None] * jnp.asarray([1.0, 0.0, 0.0], dtype)) @ rotation_exp(yaw[:, None] * up)
-    translations = _random_translations(next(keys), n_frames, dtype)
+    # The image drifts smoothly (+-100 units, periods 100-300 frames), as a tracked subject
+    # does: with the cube's random jumps no track is smooth in time and the temporal prior
+    # (jaxnrsfm.temporal) could never act, as it does on motion capture.
+    translations = IMAGE_SIZE / 2 + 100.0 * waves(next(keys), (2,), 100.0, 300.0)
     return _observe(next(keys), shapes, rotations, translations, None, None, noise, outlier_ratio, missing_ratio)
