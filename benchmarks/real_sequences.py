@@ -153,15 +153,14 @@ def main() -> None:
         f"{'sequence':8} {'seed':>4} {'clean rejected':>14} {'10% outliers':>12} {'recall':>6} {'false rej.':>10}"
         f" {'30% missing':>11}"
     )
+    rejected = {name: float(np.mean(~np.asarray(r["rec"].inliers))) for name, r in results.items()}
     by_name = {}
     for seed in range(args.seeds):
         for name in names:
-            r = results[name]
-            rejected = float(np.mean(~np.asarray(r["rec"].inliers)))
-            d = degraded(r["seq"], r["e3d"], seed)
+            d = degraded(results[name]["seq"], results[name]["e3d"], seed)
             print(
-                f"{name:8} {seed:4d} {rejected:14.4f} {d['outliers']:+12.1%} {d['recall']:6.3f} {d['false']:10.4f}"
-                f" {d['missing']:+11.1%}  status ok: {d['status']}",
+                f"{name:8} {seed:4d} {rejected[name]:14.4f} {d['outliers']:+12.1%} {d['recall']:6.3f}"
+                f" {d['false']:10.4f} {d['missing']:+11.1%}  status ok: {d['status']}",
                 flush=True,
             )
             by_name.setdefault(name, []).append(d)

@@ -116,10 +116,10 @@ def test_default_call_with_outliers(yoga150):
     # with no refills: the camera's velocity comes from rotations the outliers moved; the
     # clean camera with these shapes gives 0.0199), recall 0.993, 0.05% of the clean
     # entries rejected. Without the camera prior (camera="free") 0.0333 and 0.0331 (0.0340
-    # with no refills); before the temporal prior
-    # (jaxnrsfm.temporal) interpolated and rejected jumps: 0.0326 and 0.0355 (+9.1%),
-    # recall 0.964; before it took back the rejected entries that continue their tracks:
-    # 0.0402 (+23%), 0.4% of the clean entries rejected.
+    # with no refills); before the temporal prior (jaxnrsfm.temporal) interpolated and
+    # rejected jumps: 0.0326 and 0.0355 (+9.1%), recall 0.964; before it took back the
+    # rejected entries that continue their tracks: 0.0402 (+23%), 0.4% of the clean entries
+    # rejected.
     W, shapes, _ = yoga150
     extent = float(W.max() - W.min())
     W_out, outliers = nr.inject_outliers(jax.random.key(1), W, ratio=0.1, magnitude=(0.025 * extent, 0.125 * extent))

@@ -97,10 +97,10 @@ class HighRankRotations(RotationRecovery):
     is exact for no single part. On `jaxnrsfm.articulated_sequence` (rigid bones; keys 0-5,
     orbiting and panning cameras; `benchmarks/synthetic_mocap.py`) ``0.1`` lowered e3D on
     11 of 12, e.g. 0.6603 -> 0.0868, 0.6049 -> 0.1194, 0.8745 -> 0.2509 (pan key 2: 0.2686
-    -> 0.3178); on Akhter's
-    sequences, whose markers sit on skin, it cost a little clean (0.0238 / 0.0428 / 0.0324 /
-    0.0443 / 0.1648 -> 0.0240 / 0.0435 / 0.0328 / 0.0460 / 0.1638) and more with outliers
-    (yoga +33.7% on one injection, where it had +2.0%): not the default."""
+    -> 0.3178); on Akhter's sequences, whose markers sit on skin, it cost a little clean
+    (0.0238 / 0.0428 / 0.0324 / 0.0443 / 0.1648 -> 0.0240 / 0.0435 / 0.0328 / 0.0460 /
+    0.1638) and more with outliers (yoga +33.7% on one injection, where it had +2.0%): not
+    the default."""
     camera: Literal["constant_velocity", "free"] = "constant_velocity"
     """The camera's motion: ``"constant_velocity"`` (the default) takes the camera turning
     at a constant angular velocity nearest to the recovered rotations where they stray from
